@@ -1,0 +1,116 @@
+"""What the software believes about the walker: encoders, track, sensor mounts, brakes.
+
+The calibration travels inside every trial log, so replay uses the numbers the trial was
+recorded with. The simulator's *true* walker may differ from it (that is how wheel
+diameter and track errors are simulated).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from hardware.frames import BODY_R_OPTICAL, make_transform, rot_rpy
+from hardware.messages import CameraIntrinsics
+
+
+@dataclass(frozen=True)
+class Mount:
+    """Pose of a sensor on the walker body (x forward, y left, z up; rear-axle origin).
+
+    roll/pitch/yaw orient a body-style sensor frame (x along the optical axis);
+    positive pitch looks down.
+    """
+
+    x: float
+    y: float
+    z: float
+    roll: float = 0.0
+    pitch: float = 0.0
+    yaw: float = 0.0
+
+    def walker_T_optical(self) -> np.ndarray:
+        """Transform from the camera optical frame (x right, y down, z forward) to the walker."""
+        r = rot_rpy(self.roll, self.pitch, self.yaw) @ BODY_R_OPTICAL
+        return make_transform(r, np.array([self.x, self.y, self.z]))
+
+
+@dataclass(frozen=True)
+class BrakeCalibration:
+    """Magnetic-particle brake: torque ≈ off + slope·pwm, PWM 0–255 (thesis §3)."""
+
+    torque_off_nm: float = 0.068
+    torque_max_nm: float = 3.95
+    pwm_max: int = 255
+
+    @property
+    def slope_nm_per_pwm(self) -> float:
+        return (self.torque_max_nm - self.torque_off_nm) / self.pwm_max
+
+    def pwm(self, torque_nm: float) -> int:
+        """PWM duty (0–255) that gives at least the residual torque and at most full torque."""
+        p = (torque_nm - self.torque_off_nm) / self.slope_nm_per_pwm
+        return int(min(max(round(p), 0), self.pwm_max))
+
+    def torque(self, pwm: float) -> float:
+        return self.torque_off_nm + self.slope_nm_per_pwm * float(min(max(pwm, 0), self.pwm_max))
+
+    def clamp(self, torque_nm: float) -> float:
+        return float(min(max(torque_nm, self.torque_off_nm), self.torque_max_nm))
+
+
+def _kinect_depth() -> CameraIntrinsics:
+    return CameraIntrinsics.from_fov(160, 120, math.radians(57.0), math.radians(43.0))
+
+
+def _kinect_rgb() -> CameraIntrinsics:
+    return CameraIntrinsics.from_fov(640, 480, math.radians(62.0), math.radians(48.6))
+
+
+@dataclass(frozen=True)
+class WalkerCalibration:
+    """Encoder, geometry and sensor calibration of the walker (defaults: the thesis walker)."""
+
+    wheel_diameter_m: float = 0.203  # the thesis code's value; measured 0.204 ± 0.002
+    track_m: float = 0.64  # rear-wheel contact track (0.68 in the dimensions table)
+    counts_per_rev: int = 256
+    depth_mount: Mount = field(default_factory=lambda: Mount(0.41, 0.0, 0.495))
+    depth_intrinsics: CameraIntrinsics = field(default_factory=_kinect_depth)
+    depth_range_m: tuple[float, float] = (0.8, 3.5)
+    tag_mount: Mount = field(default_factory=lambda: Mount(0.41, 0.025, 0.495))
+    tag_intrinsics: CameraIntrinsics = field(default_factory=_kinect_rgb)
+    tag_family: str = "tag36h11"
+    tag_size_m: float = 0.165
+    brake: BrakeCalibration = field(default_factory=BrakeCalibration)
+    frame_width_m: float = 0.69  # overall width at the rear wheels
+    frame_length_m: float = 0.74
+
+    @property
+    def metres_per_count(self) -> float:
+        return math.pi * self.wheel_diameter_m / self.counts_per_rev
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> WalkerCalibration:
+        """Inverse of to_dict; unknown keys are an error (they would be silently lost)."""
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown calibration keys: {sorted(unknown)}")
+        kw: dict[str, Any] = dict(d)
+        for key in ("depth_mount", "tag_mount"):
+            if key in kw:
+                kw[key] = Mount(**kw[key])
+        for key in ("depth_intrinsics", "tag_intrinsics"):
+            if key in kw:
+                kw[key] = CameraIntrinsics(**kw[key])
+        if "brake" in kw:
+            kw["brake"] = BrakeCalibration(**kw["brake"])
+        if "depth_range_m" in kw:
+            kw["depth_range_m"] = tuple(kw["depth_range_m"])
+        return cls(**kw)

@@ -1,0 +1,36 @@
+"""Differential-drive kinematics: exact arc integration of wheel or velocity increments."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def arc_increment(ds: float, dtheta: float, theta: float) -> tuple[float, float]:
+    """World-frame (dx, dy) of an exact circular arc of length ds turning by dtheta from heading theta.
+
+    The chord of the arc has length ds·sinc(dθ/2) and points along θ + dθ/2; this form
+    is exact for any dθ and stable as dθ → 0 (straight line).
+    """
+    half = 0.5 * dtheta
+    chord = ds * (math.sin(half) / half if abs(half) > 1e-9 else 1.0 - half * half / 6.0)
+    heading = theta + half
+    return chord * math.cos(heading), chord * math.sin(heading)
+
+
+def wheel_increment(ds_left: float, ds_right: float, track: float) -> tuple[float, float]:
+    """(ds, dθ) of the axle centre from the distances rolled by the two wheels (eqs 4.9, 4.10)."""
+    return 0.5 * (ds_left + ds_right), (ds_right - ds_left) / track
+
+
+def wheel_increment_jacobian(theta: float, ds: float, dtheta: float, track: float) -> np.ndarray:
+    """∂(dx, dy, dθ)/∂(ds_left, ds_right) for the midpoint form of the arc (noise propagation)."""
+    h = theta + 0.5 * dtheta
+    c, s = math.cos(h), math.sin(h)
+    # d(ds)/dL = d(ds)/dR = 1/2; d(dθ)/dL = -1/B, d(dθ)/dR = 1/B; dx = ds cos(h), dy = ds sin(h)
+    dd = np.array([0.5, 0.5])
+    dth = np.array([-1.0 / track, 1.0 / track])
+    jx = c * dd - ds * s * 0.5 * dth
+    jy = s * dd + ds * c * 0.5 * dth
+    return np.vstack([jx, jy, dth])

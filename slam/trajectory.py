@@ -1,0 +1,67 @@
+"""Timestamped planar trajectories, interpolation and TUM file I/O."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slam.geometry import wrap_angle
+
+
+@dataclass(frozen=True, eq=False)
+class Trajectory:
+    """Poses (N×3, x y θ) at strictly increasing times t (N,)."""
+
+    t: np.ndarray
+    poses: np.ndarray
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t, dtype=float)
+        p = np.asarray(self.poses, dtype=float).reshape(-1, 3)
+        if t.shape != (len(p),):
+            raise ValueError(f"trajectory has {len(t)} times but {len(p)} poses")
+        if len(t) > 1 and np.any(np.diff(t) <= 0):
+            raise ValueError("trajectory times must be strictly increasing")
+        object.__setattr__(self, "t", t)
+        object.__setattr__(self, "poses", p)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def interpolate(self, times: np.ndarray) -> np.ndarray:
+        """Poses at `times` (linear in x, y and in unwrapped θ); clamps outside the span."""
+        times = np.asarray(times, dtype=float)
+        if len(self) == 0:
+            raise ValueError("cannot interpolate an empty trajectory")
+        th = np.unwrap(self.poses[:, 2])
+        x = np.interp(times, self.t, self.poses[:, 0])
+        y = np.interp(times, self.t, self.poses[:, 1])
+        return np.column_stack([x, y, wrap_angle(np.interp(times, self.t, th))])
+
+    def write_tum(self, path: str | Path) -> None:
+        """TUM format: `t x y z qx qy qz qw`, one pose a line (readable by evo)."""
+        half = self.poses[:, 2] / 2.0
+        rows = np.column_stack(
+            [
+                self.t,
+                self.poses[:, 0],
+                self.poses[:, 1],
+                np.zeros(len(self)),
+                np.zeros(len(self)),
+                np.zeros(len(self)),
+                np.sin(half),
+                np.cos(half),
+            ]
+        )
+        np.savetxt(path, rows, fmt="%.9f", header="timestamp x y z qx qy qz qw")
+
+    @classmethod
+    def read_tum(cls, path: str | Path) -> Trajectory:
+        rows = np.loadtxt(path, comments="#", ndmin=2)
+        if rows.shape[1] != 8:
+            raise ValueError(f"{path}: a TUM file has 8 columns, found {rows.shape[1]}")
+        qx, qy, qz, qw = rows[:, 4], rows[:, 5], rows[:, 6], rows[:, 7]
+        yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+        return cls(rows[:, 0], np.column_stack([rows[:, 1], rows[:, 2], yaw]))
