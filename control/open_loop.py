@@ -1,0 +1,96 @@
+"""Open-loop braking (thesis eq 5.13) and the manual baseline (`none`).
+
+Brake the wheel on the side of the chosen turn with a torque proportional to how far
+the nearest obstacle ahead is inside [d_min, d_max]; release both when nothing is ahead
+or the walker is not moving forward.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from control.base import CONTROLLERS, ControlInput, Controller
+from control.perception import choose_turn, front_distance, to_walker_frame
+from hardware.calibration import WalkerCalibration
+from hardware.messages import BrakeCommand
+
+
+@dataclass(frozen=True)
+class OpenLoopConfig:
+    """Open-loop braking parameters (thesis values).
+
+    d_min_m / d_max_m: full brake below d_min, none beyond d_max, linear between (5.13);
+    half_width_m: half-width of the band ahead searched for obstacles (walker 0.69 m);
+    arc_half_deg / n_arcs: the turn-decision fan (±45°, 32 sub-arcs);
+    unseen_free_radius_m: free radius of arcs outside the view with no obstacle (0 in the
+    thesis); min_speed_mps: brakes act only while moving forward faster than this.
+    """
+
+    d_min_m: float = 0.5
+    d_max_m: float = 1.25
+    half_width_m: float = 0.345
+    arc_half_deg: float = 45.0
+    n_arcs: int = 32
+    unseen_free_radius_m: float = 0.0
+    min_speed_mps: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.d_min_m < self.d_max_m:
+            raise ValueError(f"need 0 <= d_min < d_max, got {self.d_min_m}, {self.d_max_m}")
+
+
+def open_loop_level(d: float, d_min: float, d_max: float) -> float:
+    """Brake level in [0, 1] from the front distance (eq 5.13 divided by 12 V)."""
+    if d >= d_max:
+        return 0.0
+    if d <= d_min:
+        return 1.0
+    return (d_max - d) / (d_max - d_min)
+
+
+class OpenLoop(Controller):
+    def __init__(self, config: OpenLoopConfig, calibration: WalkerCalibration) -> None:
+        self.config = config
+        self.cal = calibration
+        self.last_distance = math.inf
+        self.last_direction = 0
+
+    def command(self, inp: ControlInput) -> BrakeCommand:
+        cfg, brake = self.config, self.cal.brake
+        off = brake.torque_off_nm
+        pts = to_walker_frame(inp.occupied_xy, inp.pose)
+        ref = self.cal.depth_mount.x
+        far = self.cal.depth_range_m[1]
+        d = front_distance(pts, ref, cfg.half_width_m, far)
+        self.last_distance = d
+        level = open_loop_level(d, cfg.d_min_m, cfg.d_max_m)
+        if level == 0.0 or inp.v <= cfg.min_speed_mps:
+            self.last_direction = 0
+            return BrakeCommand(inp.t, off, off, "open-loop")
+        hfov = math.atan(self.cal.depth_intrinsics.width / 2 / self.cal.depth_intrinsics.fx)
+        turn = choose_turn(
+            pts, ref, math.radians(cfg.arc_half_deg), cfg.n_arcs, hfov, far, cfg.unseen_free_radius_m
+        )
+        self.last_direction = turn.direction
+        torque = off + (brake.torque_max_nm - off) * level
+        if turn.direction > 0:  # turn left: brake the left wheel
+            return BrakeCommand(inp.t, torque, off, "open-loop")
+        return BrakeCommand(inp.t, off, torque, "open-loop")
+
+
+@dataclass(frozen=True)
+class ManualConfig:
+    """The manual baseline has no parameters: both brakes stay at their residual torque."""
+
+
+class Manual(Controller):
+    def __init__(self, config: ManualConfig, calibration: WalkerCalibration) -> None:
+        self.off = calibration.brake.torque_off_nm
+
+    def command(self, inp: ControlInput) -> BrakeCommand:
+        return BrakeCommand(inp.t, self.off, self.off, "none")
+
+
+CONTROLLERS.register("open-loop", OpenLoopConfig, "brake torque from front distance, eq 5.13")(OpenLoop)
+CONTROLLERS.register("none", ManualConfig, "manual baseline: brakes released")(Manual)

@@ -1,0 +1,123 @@
+"""Accuracy metrics: trajectories against ground truth, maps against true obstacle outlines.
+
+Plain functions on arrays; no plotting or printing (that is `experiments.report`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+from matplotlib.path import Path as MplPath
+
+from hardware.messages import BrakeCommand, Collision
+from slam.geometry import between
+from slam.trajectory import Trajectory
+
+COLLISION_KINDS = ("front", "side", "rear-wheel")
+
+
+def associate(est: Trajectory, gt: Trajectory) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Estimated poses interpolated at the ground-truth times inside the estimate's span.
+
+    Returns (times, estimated poses, true poses).
+    """
+    if len(est) == 0 or len(gt) == 0:
+        raise ValueError("cannot compare an empty trajectory")
+    inside = (gt.t >= est.t[0]) & (gt.t <= est.t[-1])
+    if not np.any(inside):
+        raise ValueError("the estimate and the ground truth do not overlap in time")
+    t = gt.t[inside]
+    return t, est.interpolate(t), gt.poses[inside]
+
+
+def align_se2(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R (2×2) and translation t minimising Σ|R·src + t − dst|² (Kabsch, no scale)."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    h = (src - mu_s).T @ (dst - mu_d)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, d]) @ u.T
+    return r, mu_d - r @ mu_s
+
+
+def ate(est: Trajectory, gt: Trajectory) -> dict[str, float]:
+    """Absolute trajectory error (position RMSE), after SE(2) alignment and unaligned."""
+    _, e, g = associate(est, gt)
+    r, t = align_se2(e[:, :2], g[:, :2])
+    aligned = e[:, :2] @ r.T + t
+    return {
+        "ate_rmse_m": float(np.sqrt(np.mean(np.sum((aligned - g[:, :2]) ** 2, axis=1)))),
+        "ate_rmse_unaligned_m": float(np.sqrt(np.mean(np.sum((e[:, :2] - g[:, :2]) ** 2, axis=1)))),
+        "final_position_error_m": float(np.hypot(*(e[-1, :2] - g[-1, :2]))),
+    }
+
+
+def rpe(est: Trajectory, gt: Trajectory, delta_s: float = 1.0) -> dict[str, float]:
+    """Relative pose error over time steps of delta_s: RMSE of translation and rotation."""
+    t, e, g = associate(est, gt)
+    j = np.searchsorted(t, t + delta_s)
+    ok = j < len(t)
+    i, j = np.nonzero(ok)[0], j[ok]
+    if len(i) == 0:
+        return {"rpe_trans_m": math.nan, "rpe_rot_deg": math.nan}
+    err = between(between(g[i], g[j]), between(e[i], e[j]))
+    return {
+        "rpe_trans_m": float(np.sqrt(np.mean(err[:, 0] ** 2 + err[:, 1] ** 2))),
+        "rpe_rot_deg": float(np.degrees(np.sqrt(np.mean(err[:, 2] ** 2)))),
+    }
+
+
+def distance_to_outlines(points: np.ndarray, polygons: Sequence[np.ndarray]) -> np.ndarray:
+    """Distance from each point (N×2) to the nearest polygon (0 inside a polygon)."""
+    pts = np.asarray(points, float).reshape(-1, 2)
+    best = np.full(len(pts), np.inf)
+    if not polygons or len(pts) == 0:
+        return best
+    for poly in polygons:
+        a = np.asarray(poly, float)
+        b = np.roll(a, -1, axis=0)
+        ab = b - a  # (S, 2)
+        ap = pts[:, None, :] - a[None, :, :]  # (N, S, 2)
+        u = np.clip(np.sum(ap * ab, axis=2) / np.maximum(np.sum(ab * ab, axis=1), 1e-12), 0.0, 1.0)
+        d = np.hypot(*(ap - u[..., None] * ab).transpose(2, 0, 1)).min(axis=1)
+        d[MplPath(a).contains_points(pts)] = 0.0
+        np.minimum(best, d, out=best)
+    return best
+
+
+def map_scores(
+    occupied_xy: np.ndarray, cell_area_m2: float, polygons: Sequence[np.ndarray], tolerance_m: float = 0.1
+) -> dict[str, float]:
+    """Map precision (share of occupied cells within tolerance of a true obstacle) and the
+    phantom area (occupied area farther than tolerance from every obstacle: the dragging)."""
+    n = len(occupied_xy)
+    if n == 0:
+        return {"map_precision": math.nan, "phantom_area_m2": 0.0, "occupied_area_m2": 0.0}
+    d = distance_to_outlines(occupied_xy, polygons)
+    phantom = int(np.count_nonzero(d > tolerance_m))
+    return {
+        "map_precision": float((n - phantom) / n),
+        "phantom_area_m2": float(phantom * cell_area_m2),
+        "occupied_area_m2": float(n * cell_area_m2),
+    }
+
+
+def collision_counts(collisions: Iterable[Collision]) -> dict[str, int]:
+    counts = Counter(c.kind for c in collisions)
+    out = {k: int(counts.get(k, 0)) for k in COLLISION_KINDS}
+    out["total"] = sum(out.values())
+    return out
+
+
+def braking_impulse(commands: Sequence[BrakeCommand], torque_off_nm: float, t_end: float) -> float:
+    """∫ (τ_L + τ_R − 2 τ_off) dt [N·m·s]: the braking applied above the brakes' residual
+    drag, with each command held until the next (or t_end)."""
+    if not commands:
+        return 0.0
+    t = np.array([c.t for c in commands] + [max(t_end, commands[-1].t)])
+    tau = np.array([c.left_nm + c.right_nm - 2.0 * torque_off_nm for c in commands])
+    return float(np.sum(np.maximum(tau, 0.0) * np.diff(t)))

@@ -1,0 +1,90 @@
+"""Wheel slip under braking and the quadrature encoders that under-report because of it.
+
+A braked wheel transmits its brake force to the floor through the tyre; the tyre skids
+by a longitudinal slip ratio s (wheel circumference rolled = (1 − s) · ground distance)
+that grows with the force it carries and with how slippery the floor is. This is the
+mechanism of thesis Fig 6.1: the encoder of the braked wheel under-reports, and dead
+reckoning curves toward the braked side — much more on a dusty floor.
+
+Model (a modelling assumption, not a measurement): s = k_surface · F_b / F_b,max ·
+m(t), clipped to [0, 0.95], where m(t) is a log-normal, time-correlated factor (an
+Ornstein–Uhlenbeck process in log space) drawn from the run's seed. k_surface is the slip
+ratio at full brake force: `clean` 0.02, `dusty` 0.12, or any number in [0, 0.95].
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+SURFACES: dict[str, float] = {"clean": 0.02, "dusty": 0.12}
+
+
+def surface_coefficient(surface: str | float) -> float:
+    """Slip ratio at full brake force for a named surface or a number."""
+    if isinstance(surface, str):
+        if surface in SURFACES:
+            return SURFACES[surface]
+        try:
+            value = float(surface)
+        except ValueError:
+            raise ValueError(
+                f"unknown surface '{surface}'; valid: {', '.join(SURFACES)} or a number in [0, 0.95]"
+            ) from None
+    else:
+        value = float(surface)
+    if not 0.0 <= value <= 0.95:
+        raise ValueError(f"surface slip coefficient must be in [0, 0.95], got {value}")
+    return value
+
+
+class SlipModel:
+    """Slip ratio of each rear wheel as a function of its brake force."""
+
+    def __init__(
+        self,
+        surface: str | float,
+        max_brake_force_n: float,
+        rng: np.random.Generator,
+        variability: float = 0.3,
+        correlation_time_s: float = 0.5,
+    ) -> None:
+        self.k = surface_coefficient(surface)
+        self.max_force = max_brake_force_n
+        self.rng = rng
+        self.sigma = variability
+        self.tau = correlation_time_s
+        self._log_factor = np.zeros(2)
+
+    def step(self, dt: float, brake_forces: tuple[float, float]) -> tuple[float, float]:
+        """Advance the random factor by dt and return the slip ratios (left, right)."""
+        a = math.exp(-dt / self.tau)
+        noise = self.rng.standard_normal(2) * self.sigma * math.sqrt(1.0 - a * a)
+        self._log_factor = a * self._log_factor + noise
+        factor = np.exp(self._log_factor - 0.5 * self.sigma**2)
+        s = [
+            min(max(self.k * abs(f) / self.max_force * float(m), 0.0), 0.95)
+            for f, m in zip(brake_forces, factor, strict=True)
+        ]
+        return s[0], s[1]
+
+
+class Encoders:
+    """Quadrature encoders on the true wheels: cumulative counts of wheel rotation."""
+
+    def __init__(self, wheel_diameter_m: float, counts_per_rev: int) -> None:
+        self.counts_per_metre = counts_per_rev / (math.pi * wheel_diameter_m)
+        self._rolled = [0.0, 0.0]  # metres of circumference rolled (signed)
+
+    def roll(self, ground_left: float, ground_right: float, slip: tuple[float, float]) -> None:
+        """Wheels cover ground distances; the encoders see (1 − s) of it."""
+        self._rolled[0] += ground_left * (1.0 - slip[0])
+        self._rolled[1] += ground_right * (1.0 - slip[1])
+
+    def counts(self) -> tuple[int, int]:
+        # A quadrature counter reports whole counts (floor, also for negative rotation).
+        return (
+            math.floor(self._rolled[0] * self.counts_per_metre),
+            math.floor(self._rolled[1] * self.counts_per_metre),
+        )

@@ -1,0 +1,138 @@
+"""Simulated users who push the walker with forward forces on the two handles.
+
+`RouteFollower` models a vision-impaired user who knows the route but not where the
+obstacles are: they track their position by feel (their own dead reckoning of the
+walker's motion, which drifts — that drift is the impairment), steer toward the route
+by pure pursuit through differential handle force, and feel the brakes only through the
+walker's dynamics. A collision is felt: the user re-orients (their belief snaps back to
+the truth) and carries on. `ConstantPush` applies fixed handle forces (physics tests,
+parameter sweeps).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from hardware.sim.dynamics import WalkerParams, WalkerState
+
+
+@dataclass(frozen=True)
+class UserParams:
+    """How a simulated user pushes and how well they know where they are.
+
+    speed_mps: preferred walking speed; lookahead_m: pure-pursuit lookahead on the route;
+    speed_gain / yaw_gain: feedback from felt speed / turning [N per m/s, N·m per rad/s];
+    max_push_n: largest total forward force; max_steer_n: largest handle-force difference;
+    heading_drift_rad_per_sqrt_m: random walk of the user's sense of heading per √metre
+    walked (the impairment); heading_bias_rad_per_m: a constant veer of that sense;
+    distance_scale_error: relative error of their sense of distance walked.
+    """
+
+    speed_mps: float = 0.75
+    lookahead_m: float = 0.9
+    speed_gain: float = 40.0
+    yaw_gain: float = 6.0
+    max_push_n: float = 60.0
+    max_steer_n: float = 25.0
+    heading_drift_rad_per_sqrt_m: float = 0.06
+    heading_bias_rad_per_m: float = 0.0
+    distance_scale_error: float = 0.0
+    finish_radius_m: float = 0.4
+
+
+class ConstantPush:
+    """Fixed forward forces on the left and right handles."""
+
+    def __init__(self, left_n: float, right_n: float) -> None:
+        self.left_n, self.right_n = left_n, right_n
+        self.finished = False
+
+    def forces(self, state: WalkerState, dt: float) -> tuple[float, float]:
+        return self.left_n, self.right_n
+
+    def on_collision(self, state: WalkerState) -> None:
+        pass
+
+
+class RouteFollower:
+    """Pure pursuit along a route, on the user's own drifting sense of where they are."""
+
+    def __init__(
+        self,
+        route: np.ndarray,
+        start: WalkerState,
+        walker: WalkerParams,
+        params: UserParams,
+        rng: np.random.Generator,
+    ) -> None:
+        route = np.asarray(route, dtype=float)
+        if route.ndim != 2 or route.shape[1] != 2 or len(route) < 2:
+            raise ValueError(f"route must be an (N>=2, 2) array of waypoints, got {route.shape}")
+        self.route = route
+        seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
+        self.arclen = np.concatenate([[0.0], np.cumsum(seg)])
+        self.walker = walker
+        self.p = params
+        self.rng = rng
+        self.belief = np.array([start.x, start.y, start.phi])
+        self.progress_m = 0.0
+        self.finished = False
+
+    # -- belief -----------------------------------------------------------------------
+    def _feel_motion(self, state: WalkerState, dt: float) -> None:
+        ds = state.v * dt * (1.0 + self.p.distance_scale_error)
+        walked = abs(state.v * dt)
+        dphi = state.omega * dt + self.p.heading_bias_rad_per_m * walked
+        if walked > 0:
+            dphi += self.p.heading_drift_rad_per_sqrt_m * math.sqrt(walked) * self.rng.standard_normal()
+        th = self.belief[2] + 0.5 * dphi
+        self.belief += (ds * math.cos(th), ds * math.sin(th), dphi)
+
+    def on_collision(self, state: WalkerState) -> None:
+        self.belief[:] = (state.x, state.y, state.phi)
+
+    # -- route ------------------------------------------------------------------------
+    def _point_at(self, s: float) -> np.ndarray:
+        return np.array(
+            [np.interp(s, self.arclen, self.route[:, 0]), np.interp(s, self.arclen, self.route[:, 1])]
+        )
+
+    def _update_progress(self) -> None:
+        # Closest route point to the belief, searched only a little behind and ahead so
+        # the user never skips a loop of a route that passes near itself.
+        lo, hi = self.progress_m - 0.5, self.progress_m + 2.0
+        s = np.linspace(max(lo, 0.0), min(hi, self.arclen[-1]), 60)
+        pts = np.column_stack(
+            [np.interp(s, self.arclen, self.route[:, 0]), np.interp(s, self.arclen, self.route[:, 1])]
+        )
+        d = np.hypot(pts[:, 0] - self.belief[0], pts[:, 1] - self.belief[1])
+        self.progress_m = max(self.progress_m, float(s[int(np.argmin(d))]))
+
+    # -- forces -----------------------------------------------------------------------
+    def forces(self, state: WalkerState, dt: float) -> tuple[float, float]:
+        self._feel_motion(state, dt)
+        self._update_progress()
+        remaining = self.arclen[-1] - self.progress_m
+        end = self.route[-1]
+        if remaining < self.p.finish_radius_m and math.dist(self.belief[:2], end) < self.p.finish_radius_m:
+            self.finished = True
+        target = self._point_at(self.progress_m + self.p.lookahead_m)
+        bearing = math.atan2(target[1] - self.belief[1], target[0] - self.belief[0])
+        err = math.remainder(bearing - self.belief[2], 2.0 * math.pi)
+
+        v_des = self.p.speed_mps * max(0.3, math.cos(err)) * min(1.0, remaining / 0.8 + 0.2)
+        if self.finished:
+            v_des = 0.0
+        v_ref = max(abs(state.v), 0.3)
+        omega_des = 2.0 * v_ref * math.sin(err) / self.p.lookahead_m
+
+        w = self.walker
+        total = w.damping * v_des + self.p.speed_gain * (v_des - state.v)
+        total = min(max(total, -0.5 * self.p.max_push_n), self.p.max_push_n)
+        yaw_torque = w.yaw_damping * omega_des + self.p.yaw_gain * (omega_des - state.omega)
+        diff = yaw_torque / (w.alpha * w.half_track_m)
+        diff = min(max(diff, -self.p.max_steer_n), self.p.max_steer_n)
+        return 0.5 * (total - diff), 0.5 * (total + diff)

@@ -1,0 +1,61 @@
+import numpy as np
+import pytest
+
+from experiments.metrics import align_se2, ate, braking_impulse, distance_to_outlines, map_scores, rpe
+from hardware.messages import BrakeCommand
+from slam.geometry import compose
+from slam.trajectory import Trajectory
+
+
+def gt_traj():
+    t = np.linspace(0, 20, 401)
+    return Trajectory(t, np.column_stack([np.cos(t / 3) * 3, np.sin(t / 2) * 2, np.sin(t / 5)]))
+
+
+def test_ate_is_zero_for_a_rigidly_moved_copy():
+    gt = gt_traj()
+    moved = Trajectory(gt.t, compose(np.array([1.0, -2.0, 0.7]), gt.poses))
+    m = ate(moved, gt)
+    assert m["ate_rmse_m"] == pytest.approx(0.0, abs=1e-9)
+    assert m["ate_rmse_unaligned_m"] > 1.0
+
+
+def test_ate_of_known_offset_noise():
+    gt = gt_traj()
+    noisy = gt.poses.copy()
+    noisy[::2, 0] += 0.1
+    noisy[1::2, 0] -= 0.1
+    m = ate(Trajectory(gt.t, noisy), gt)
+    assert m["ate_rmse_m"] == pytest.approx(0.1, rel=0.01)
+
+
+def test_alignment_recovers_rotation():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(50, 2))
+    th = 0.4
+    r = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    r_est, t_est = align_se2(src, src @ r.T + [1, 2])
+    assert np.allclose(r_est, r) and np.allclose(t_est, [1, 2])
+
+
+def test_rpe_zero_for_rigid_copy_and_positive_for_drift():
+    gt = gt_traj()
+    moved = Trajectory(gt.t, compose(np.array([1.0, -2.0, 0.7]), gt.poses))
+    assert rpe(moved, gt)["rpe_trans_m"] == pytest.approx(0.0, abs=1e-9)
+    drift = gt.poses.copy()
+    drift[:, 0] += 0.05 * gt.t  # 5 cm/s
+    assert rpe(Trajectory(gt.t, drift), gt)["rpe_trans_m"] == pytest.approx(0.05, rel=0.05)
+
+
+def test_distances_to_square():
+    sq = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    d = distance_to_outlines(np.array([[0.5, 0.5], [2.0, 0.5], [-0.3, -0.4]]), [sq])
+    assert d == pytest.approx([0.0, 1.0, 0.5])
+    s = map_scores(np.array([[0.5, 0.5], [1.05, 0.5], [3.0, 3.0]]), 0.0025, [sq])
+    assert s["map_precision"] == pytest.approx(2 / 3)
+    assert s["phantom_area_m2"] == pytest.approx(0.0025)
+
+
+def test_braking_impulse_above_residual():
+    cmds = [BrakeCommand(0.0, 0.068, 0.068), BrakeCommand(1.0, 2.068, 0.068), BrakeCommand(3.0, 0.068, 0.068)]
+    assert braking_impulse(cmds, 0.068, 10.0) == pytest.approx(4.0)

@@ -1,0 +1,49 @@
+import numpy as np
+import pytest
+
+from hardware.frames import invert_transform, make_transform, rot_rpy, transform_points
+from slam.geometry import between, compose, from_matrix, inverse, to_matrix, transform_points as tp2, wrap_angle
+
+
+def random_poses(rng, n):
+    return np.column_stack([rng.uniform(-5, 5, n), rng.uniform(-5, 5, n), rng.uniform(-np.pi, np.pi, n)])
+
+
+def test_wrap_angle_range():
+    a = np.linspace(-20, 20, 1001)
+    w = wrap_angle(a)
+    assert np.all(w > -np.pi) and np.all(w <= np.pi)
+    assert np.allclose(np.cos(w), np.cos(a)) and np.allclose(np.sin(w), np.sin(a))
+    assert wrap_angle(-np.pi) == pytest.approx(np.pi)
+
+
+def test_compose_inverse_is_identity():
+    rng = np.random.default_rng(0)
+    p = random_poses(rng, 100)
+    assert np.allclose(compose(p, inverse(p)), 0, atol=1e-12)
+    assert np.allclose(compose(inverse(p), p), 0, atol=1e-12)
+
+
+def test_compose_matches_matrices_and_between_round_trips():
+    rng = np.random.default_rng(1)
+    a, b = random_poses(rng, 1)[0], random_poses(rng, 1)[0]
+    assert np.allclose(from_matrix(to_matrix(a) @ to_matrix(b)), compose(a, b))
+    assert np.allclose(compose(a, between(a, b)), b)
+
+
+def test_transform_points_rotates_then_translates():
+    pose = np.array([1.0, 2.0, np.pi / 2])
+    assert np.allclose(tp2(pose, np.array([[1.0, 0.0]])), [[1.0, 3.0]])
+
+
+def test_bad_shape_is_a_clear_error():
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
+        compose(np.zeros(2), np.zeros(3))
+
+
+def test_se3_inverse_and_points():
+    rng = np.random.default_rng(2)
+    t = make_transform(rot_rpy(*rng.uniform(-1, 1, 3)), rng.uniform(-1, 1, 3))
+    assert np.allclose(t @ invert_transform(t), np.eye(4))
+    pts = rng.normal(size=(10, 3))
+    assert np.allclose(transform_points(invert_transform(t), transform_points(t, pts)), pts)
