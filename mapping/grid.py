@@ -1,0 +1,400 @@
+"""Floor-plane occupancy grids that grow (or roll) with the walker.
+
+Two map models share one extent mechanism (`GridExtent`):
+
+- `OccupancyGrid` (model "log-odds"): each frame adds l_occ to the cells holding
+  obstacle points and l_free to the cells its rays crossed (sensor to end, end cell
+  excluded when it holds an obstacle), each cell at most once per frame, clamped.
+- `ViewCountGrid` (model "view-count", thesis §4.1): per cell, the number of frames in
+  which it was in view and the number in which it held obstacle points; occupied when
+  hits / views > 0.5. "In view" is the sensor's view wedge when the observation has one
+  (depth camera: 0.8–4.15 m, ±half FOV), else the cells the rays reached. A cell that
+  held points counts as in view too.
+
+Cells and extent. Cells are 5 cm squares by default on a lattice anchored at the world
+origin (cell boundaries at integer multiples of the resolution), so the same world point
+always falls in the same lattice cell, however the array grows. Arrays are indexed
+[iy, ix] with row 0 at the lowest y; `origin` is the world (x, y) of the lower-left corner
+of cell [0, 0]. `world_to_cell` / `cell_to_world` use array indices (ix, iy), which stay
+valid until the grid next grows or rolls.
+
+The grid starts empty and grows when a frame reaches outside it, by at least
+`grow_chunk_m` and at least a quarter of its current size on each side that needs it
+(amortised O(1) copying per cell; at most about 1.5× the mapped extent per axis).
+
+With `max_size_m` set, the grid never exceeds a square of that side: when a frame does
+not fit together with what is already mapped, the grid *rolls* to a window of that side
+centred on the walker, and whatever falls outside is dropped for good (the thesis
+instead cleared its whole map every 100 steps). Choose max_size_m well above twice the
+sensor's reach (e.g. ≥ 12 m for the Kinect's 3.5 m), or the grid rolls, copying
+itself, on nearly every frame.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import ClassVar
+
+import numpy as np
+
+from mapping.lattice import (
+    as_points,
+    bundle_rays,
+    cell_bounds,
+    cell_centres,
+    cells_of,
+    trace_rays_ij,
+    unique_cells,
+)
+from mapping.observation import ViewWedge, WorldObservation
+from slam.geometry import wrap_angle
+
+
+class MapModel(StrEnum):
+    LOG_ODDS = "log-odds"
+    VIEW_COUNT = "view-count"
+
+
+@dataclass(frozen=True)
+class LogOddsConfig:
+    """Log-odds increments and clamps (OctoMap's defaults).
+
+    l_occ = logit(0.7) ≈ 0.85 per frame with a hit, l_free = logit(0.4) ≈ −0.41 per frame
+    a ray crossed the cell; clamped to [l_min, l_max] = [logit(0.12), logit(0.97)] so
+    that the map can still change its mind about a cell it has seen many times.
+    """
+
+    l_occ: float = 0.85
+    l_free: float = -0.41
+    l_min: float = -2.0
+    l_max: float = 3.5
+
+    def __post_init__(self) -> None:
+        if not (self.l_free < 0.0 < self.l_occ and self.l_min < 0.0 < self.l_max):
+            raise ValueError("need l_free < 0 < l_occ and l_min < 0 < l_max")
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    """resolution_m: cell side (0.05 m, as the thesis).
+    model: "log-odds" or "view-count".
+    log_odds: increments for the log-odds model.
+    grow_chunk_m: least growth per side when a frame reaches outside the grid.
+    max_size_m: side of the largest (square) grid before it rolls; None: unbounded.
+    bundle_rays: trace one ray per bearing bin (see lattice.bundle_rays) instead of one
+        per distinct end cell; same free space within half a cell, far fewer samples.
+    """
+
+    resolution_m: float = 0.05
+    model: MapModel = MapModel.LOG_ODDS
+    log_odds: LogOddsConfig = field(default_factory=LogOddsConfig)
+    grow_chunk_m: float = 2.0
+    max_size_m: float | None = None
+    bundle_rays: bool = True
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "model", MapModel(self.model))
+        if self.resolution_m <= 0 or self.grow_chunk_m < 0:
+            raise ValueError("resolution_m must be > 0 and grow_chunk_m >= 0")
+        if self.max_size_m is not None and self.max_size_m < 2 * self.resolution_m:
+            raise ValueError(f"max_size_m must be at least two cells, got {self.max_size_m}")
+
+
+class GridExtent(ABC):
+    """Extent bookkeeping, frame rasterisation and thresholds shared by the map models.
+
+    Subclasses name their per-cell layers in LAYERS (all zero-initialised) and implement
+    `_update` (one frame) and `probability`.
+    """
+
+    LAYERS: ClassVar[dict[str, type]]
+    OCCUPIED_THRESHOLD: ClassVar[float]
+    FREE_THRESHOLD: ClassVar[float]
+
+    def __init__(self, config: GridConfig | None = None) -> None:
+        self.config = config or GridConfig()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything: an empty grid."""
+        self._offset = np.zeros(2, dtype=np.int64)  # lattice (i, j) of array cell [0, 0]
+        self._layers = {name: np.zeros((0, 0), dtype=dt) for name, dt in self.LAYERS.items()}
+
+    # --- geometry -----------------------------------------------------------------------
+    @property
+    def resolution(self) -> float:
+        return self.config.resolution_m
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, cols) = (ny, nx)."""
+        return next(iter(self._layers.values())).shape
+
+    @property
+    def lattice_offset(self) -> tuple[int, int]:
+        """World-lattice cell (i, j) of array cell [0, 0]; origin = offset · resolution."""
+        return int(self._offset[0]), int(self._offset[1])
+
+    @property
+    def origin(self) -> tuple[float, float]:
+        """World (x, y) of the lower-left corner of array cell [0, 0]."""
+        return float(self._offset[0] * self.resolution), float(self._offset[1] * self.resolution)
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) in world metres."""
+        ox, oy = self.origin
+        ny, nx = self.shape
+        return ox, ox + nx * self.resolution, oy, oy + ny * self.resolution
+
+    def world_to_cell(self, xy: np.ndarray) -> np.ndarray:
+        """Array indices (ix, iy) (N×2 int64) of world points; may lie outside the array."""
+        return cells_of(as_points(np.atleast_2d(xy), "xy"), self.resolution) - self._offset
+
+    def cell_to_world(self, cells: np.ndarray) -> np.ndarray:
+        """World centres (N×2) of array cells (ix, iy)."""
+        return cell_centres(
+            as_points(np.atleast_2d(cells), "cells") + self._offset, self.resolution
+        )
+
+    # --- what the map says --------------------------------------------------------------
+    @abstractmethod
+    def probability(self) -> np.ndarray:
+        """Occupancy probability per cell, (ny, nx); 0.5 where nothing is known."""
+
+    @abstractmethod
+    def known(self) -> np.ndarray:
+        """Boolean (ny, nx): cells with any evidence."""
+
+    def occupied(self, threshold: float | None = None) -> np.ndarray:
+        """Boolean (ny, nx): probability > threshold (default: the model's)."""
+        thr = self.OCCUPIED_THRESHOLD if threshold is None else threshold
+        return self.probability() > thr
+
+    def free(self, threshold: float | None = None) -> np.ndarray:
+        """Boolean (ny, nx): known cells with probability < threshold (default: the model's)."""
+        thr = self.FREE_THRESHOLD if threshold is None else threshold
+        return self.known() & (self.probability() < thr)
+
+    def occupied_xy(self, threshold: float | None = None) -> np.ndarray:
+        """World centres (N×2) of the occupied cells."""
+        iy, ix = np.nonzero(self.occupied(threshold))
+        return self.cell_to_world(np.column_stack([ix, iy]))
+
+    def trinary(self) -> np.ndarray:
+        """int8 (ny, nx): 1 occupied, 0 free, −1 unknown (default thresholds)."""
+        out = np.full(self.shape, -1, dtype=np.int8)
+        out[self.free()] = 0
+        out[self.occupied()] = 1
+        return out
+
+    # --- integration --------------------------------------------------------------------
+    def integrate(self, obs: WorldObservation, centre_xy: np.ndarray | None = None) -> None:
+        """Add one frame. `centre_xy` (default: the sensor) centres the window when rolling."""
+        res = self.resolution
+        occ_cells = cells_of(obs.obstacles, res)
+        end_cells = unique_cells(cells_of(obs.ray_ends, res))
+        sensor_cell = cells_of(obs.sensor_xy[None, :], res)
+        parts = [occ_cells, end_cells, sensor_cell, *self._extra_cells(obs)]
+        lo, hi = cell_bounds(np.concatenate(parts))
+        centre = obs.sensor_xy if centre_xy is None else np.asarray(centre_xy, dtype=np.float64)
+        self._ensure(lo, hi, cells_of(centre[None], res)[0])
+        # Window of this frame, clipped to the grid (which matters only after rolling).
+        lo = np.maximum(lo, self._offset)
+        hi = np.minimum(hi, self._offset + self.shape[::-1] - 1)
+        if np.any(hi < lo):
+            return
+        frame = _Frame(self, obs, lo, hi - lo + 1, occ_cells, end_cells)
+        a = lo - self._offset
+        rows = slice(a[1], a[1] + frame.size[1])
+        cols = slice(a[0], a[0] + frame.size[0])
+        self._update({k: v[rows, cols] for k, v in self._layers.items()}, frame)
+
+    def _extra_cells(self, obs: WorldObservation) -> list[np.ndarray]:
+        """Cells beyond the observation's points that the update touches (e.g. a wedge)."""
+        return []
+
+    @abstractmethod
+    def _update(self, layers: dict[str, np.ndarray], frame: _Frame) -> None:
+        """Apply one frame to the window views `layers` (each (h, w), writable)."""
+
+    def _ensure(self, lo: np.ndarray, hi: np.ndarray, centre: np.ndarray) -> None:
+        """Grow (or roll) so that lattice cells lo..hi (inclusive) fit, if they can."""
+        ny, nx = self.shape
+        size = np.array([nx, ny], dtype=np.int64)
+        cur_lo, cur_hi = self._offset, self._offset + size - 1
+        empty = nx == 0 or ny == 0
+        if not empty and np.all(lo >= cur_lo) and np.all(hi <= cur_hi):
+            return
+        need_lo = lo if empty else np.minimum(lo, cur_lo)
+        need_hi = hi if empty else np.maximum(hi, cur_hi)
+        pad = np.maximum(int(np.ceil(self.config.grow_chunk_m / self.resolution)), size // 4)
+        new_lo = np.where(empty | (need_lo < cur_lo), need_lo - pad, cur_lo)
+        new_hi = np.where(empty | (need_hi > cur_hi), need_hi + pad, cur_hi)
+        if self.config.max_size_m is not None:
+            n_max = max(round(self.config.max_size_m / self.resolution), 2)
+            for k in range(2):
+                if new_hi[k] - new_lo[k] + 1 <= n_max:
+                    continue
+                if need_hi[k] - need_lo[k] + 1 <= n_max:  # fits: trim the padding
+                    new_lo[k] = min(max(new_lo[k], need_hi[k] - n_max + 1), need_lo[k])
+                else:  # roll: a window centred on the walker; the rest is dropped
+                    new_lo[k] = centre[k] - n_max // 2
+                new_hi[k] = new_lo[k] + n_max - 1
+        self._resize(new_lo, new_hi)
+
+    def _resize(self, new_lo: np.ndarray, new_hi: np.ndarray) -> None:
+        new_size = new_hi - new_lo + 1
+        ny, nx = self.shape
+        old_lo, old_hi = self._offset, self._offset + np.array([nx, ny]) - 1
+        keep_lo, keep_hi = np.maximum(old_lo, new_lo), np.minimum(old_hi, new_hi)
+        for name, old in self._layers.items():
+            new = np.zeros((new_size[1], new_size[0]), dtype=old.dtype)
+            if np.all(keep_hi >= keep_lo):
+                a, b = keep_lo - new_lo, keep_lo - old_lo
+                h, w = (keep_hi - keep_lo + 1)[::-1]
+                new[a[1] : a[1] + h, a[0] : a[0] + w] = old[b[1] : b[1] + h, b[0] : b[0] + w]
+            self._layers[name] = new
+        self._offset = np.asarray(new_lo, dtype=np.int64).copy()
+
+
+class _Frame:
+    """One observation rasterised into a window of the lattice (lo, size = (w, h))."""
+
+    def __init__(
+        self,
+        grid: GridExtent,
+        obs: WorldObservation,
+        lo: np.ndarray,
+        size: np.ndarray,
+        occ_cells: np.ndarray,
+        end_cells: np.ndarray,
+    ) -> None:
+        self.grid, self.obs, self.lo, self.size = grid, obs, lo, size
+        self._end_cells = end_cells
+        self.occupied = self.mask(occ_cells)
+
+    def mask(self, cells: np.ndarray) -> np.ndarray:
+        """Boolean (h, w) window with the given N×2 lattice cells set (outside ones dropped)."""
+        return self.mask_ij(cells[:, 0], cells[:, 1])
+
+    def mask_ij(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """`mask` for cells given as two 1-D arrays."""
+        w, h = self.size.tolist()
+        out = np.zeros(h * w, dtype=bool)
+        if len(i) == 0:
+            return out.reshape(h, w)
+        i, j = i - self.lo[0], j - self.lo[1]
+        if i.min() < 0 or j.min() < 0 or i.max() >= w or j.max() >= h:  # after rolling
+            inside = (i >= 0) & (i < w) & (j >= 0) & (j < h)
+            i, j = i[inside], j[inside]
+        j *= w
+        j += i
+        out[j] = True
+        return out.reshape(h, w)
+
+    def rays(self) -> np.ndarray:
+        """Cells the rays crossed or ended in (the frame's obstacle cells included)."""
+        res = self.grid.resolution
+        targets = cell_centres(self._end_cells, res)
+        if self.grid.config.bundle_rays:
+            targets = targets[bundle_rays(self.obs.sensor_xy, targets, res)]
+        crossed = self.mask_ij(*trace_rays_ij(self.obs.sensor_xy, targets, res))
+        return crossed | self.mask(self._end_cells)
+
+    def wedge(self, view: ViewWedge) -> np.ndarray:
+        """Cells of the window whose centres lie in the view wedge of the sensor."""
+        w, h = self.size.tolist()
+        res = self.grid.resolution
+        x = (np.arange(w) + self.lo[0] + 0.5) * res - self.obs.sensor_xy[0]
+        y = (np.arange(h) + self.lo[1] + 0.5) * res - self.obs.sensor_xy[1]
+        r = np.hypot(x[None, :], y[:, None])
+        bearing = wrap_angle(np.arctan2(y[:, None], x[None, :]) - self.obs.heading)
+        return (r >= view.r_min) & (r <= view.r_max) & (np.abs(bearing) <= view.half_fov)
+
+
+class OccupancyGrid(GridExtent):
+    """Log-odds occupancy grid (float32 layer "log_odds"; 0 = unknown)."""
+
+    LAYERS: ClassVar[dict[str, type]] = {"log_odds": np.float32}
+    OCCUPIED_THRESHOLD: ClassVar[float] = 0.65
+    FREE_THRESHOLD: ClassVar[float] = 0.196
+
+    @property
+    def log_odds(self) -> np.ndarray:
+        """The (ny, nx) log-odds array (read it, do not write it)."""
+        return self._layers["log_odds"]
+
+    def probability(self) -> np.ndarray:
+        return 1.0 / (1.0 + np.exp(-self.log_odds.astype(np.float64)))
+
+    def known(self) -> np.ndarray:
+        return self.log_odds != 0.0
+
+    def occupied(self, threshold: float | None = None) -> np.ndarray:
+        # Same as probability() > threshold, without exponentiating the whole grid.
+        thr = self.OCCUPIED_THRESHOLD if threshold is None else threshold
+        if not 0.0 < thr < 1.0:
+            raise ValueError(f"threshold must be in (0, 1), got {thr}")
+        return self.log_odds > np.log(thr / (1.0 - thr))
+
+    def _update(self, layers: dict[str, np.ndarray], frame: _Frame) -> None:
+        p = self.config.log_odds
+        lo = layers["log_odds"]
+        occ = frame.occupied
+        free = frame.rays() & ~occ
+        lo[free] = np.maximum(lo[free] + np.float32(p.l_free), np.float32(p.l_min))
+        lo[occ] = np.minimum(lo[occ] + np.float32(p.l_occ), np.float32(p.l_max))
+
+
+class ViewCountGrid(GridExtent):
+    """The thesis's counting model: uint32 layers "views" and "hits" per cell."""
+
+    LAYERS: ClassVar[dict[str, type]] = {"views": np.uint32, "hits": np.uint32}
+    OCCUPIED_THRESHOLD: ClassVar[float] = 0.5
+    FREE_THRESHOLD: ClassVar[float] = 0.5
+
+    @property
+    def views(self) -> np.ndarray:
+        return self._layers["views"]
+
+    @property
+    def hits(self) -> np.ndarray:
+        return self._layers["hits"]
+
+    def probability(self) -> np.ndarray:
+        p = np.full(self.shape, 0.5)
+        seen = self.views > 0
+        p[seen] = self.hits[seen] / self.views[seen]
+        return p
+
+    def known(self) -> np.ndarray:
+        return self.views > 0
+
+    def _extra_cells(self, obs: WorldObservation) -> list[np.ndarray]:
+        if obs.view is None:
+            return []
+        # Bounding box of the wedge from its arcs, sampled finely (the arcs bulge past the
+        # chords by < 1 cm for any wedge) and padded by one cell.
+        v = obs.view
+        angles = obs.heading + np.linspace(-v.half_fov, v.half_fov, 65)
+        radii = np.array([v.r_min, v.r_max])
+        pts = obs.sensor_xy + np.column_stack(
+            [np.outer(radii, np.cos(angles)).ravel(), np.outer(radii, np.sin(angles)).ravel()]
+        )
+        lo, hi = cell_bounds(cells_of(pts, self.resolution))
+        return [lo[None] - 1, hi[None] + 1]
+
+    def _update(self, layers: dict[str, np.ndarray], frame: _Frame) -> None:
+        occ = frame.occupied
+        view = frame.rays() if frame.obs.view is None else frame.wedge(frame.obs.view)
+        layers["views"][view | occ] += 1
+        layers["hits"][occ] += 1
+
+
+def make_grid(config: GridConfig | None = None) -> GridExtent:
+    """The grid class of config.model."""
+    cfg = config or GridConfig()
+    return {MapModel.LOG_ODDS: OccupancyGrid, MapModel.VIEW_COUNT: ViewCountGrid}[cfg.model](cfg)

@@ -1,0 +1,160 @@
+"""The shared occupancy mapper: depth frames and laser scans at localizer poses → one grid.
+
+Every frame goes through the same path: sensor data → `PlanarObservation` in the walker
+frame → compacted (points snapped to a quarter-cell lattice in the walker frame,
+duplicates dropped, float32) → placed at the walker's pose → integrated into the grid.
+
+Keyframe memory. A frame integrated with a `key` (any hashable, e.g. a keyframe index)
+is kept in its compact walker-frame form with the pose it was integrated at, so that
+`rebuild(poses)` can re-create the map from the kept frames at revised poses — what a
+smoother that revises the past needs. Frames without a key are integrated and forgotten
+(a rebuilt map does not contain them). A kept 160×120 depth frame takes a few tens of kB
+(see `keyframe_nbytes`); with `max_keyframes` set, the oldest kept frame is forgotten
+when the limit is exceeded. Re-using a key replaces the frame kept under it (and makes it
+the newest).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable, Iterator, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hardware.calibration import WalkerCalibration
+from hardware.messages import DepthFrame, LaserScan
+from mapping.depth_points import DepthConfig, project_depth_frame
+from mapping.grid import GridConfig, GridExtent, make_grid
+from mapping.observation import PlanarObservation, ViewWedge, as_pose
+from mapping.scan_points import ScanConfig, scan_to_observation
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    """grid: cell size, map model, growth/rolling.
+    depth: obstacle band, stride, no-return handling of depth frames.
+    scan: usable range and no-return handling of laser scans.
+    view_range_m: depth camera's view wedge range for the view-count model (thesis:
+        0.8–4.15 m).
+    view_half_fov_rad: half-width of that wedge; None: half the depth camera's horizontal
+        field of view (28.5° for the Kinect; the thesis used ±0.5 rad).
+    point_quantum_m: lattice the walker-frame points are snapped to before integrating and
+        keeping; None: resolution/4 (1.25 cm at 5 cm cells); 0: no snapping.
+    max_keyframes: most keyframes kept for `rebuild`; None: all.
+    """
+
+    grid: GridConfig = field(default_factory=GridConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    scan: ScanConfig = field(default_factory=ScanConfig)
+    view_range_m: tuple[float, float] = (0.8, 4.15)
+    view_half_fov_rad: float | None = None
+    point_quantum_m: float | None = None
+    max_keyframes: int | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class _Keyframe:
+    obs: PlanarObservation
+    pose: np.ndarray
+
+
+class OccupancyMapper:
+    """Integrates depth frames and laser scans into one floor-plane grid (see module doc)."""
+
+    def __init__(
+        self, calibration: WalkerCalibration | None = None, config: MapperConfig | None = None
+    ) -> None:
+        self.calibration = calibration or WalkerCalibration()
+        self.config = config or MapperConfig()
+        self._grid = make_grid(self.config.grid)
+        self._keyframes: dict[Hashable, _Keyframe] = {}
+        q = self.config.point_quantum_m
+        self._quantum = self.config.grid.resolution_m / 4.0 if q is None else q
+
+    @property
+    def grid(self) -> GridExtent:
+        """The current map (an OccupancyGrid or a ViewCountGrid, after config.grid.model)."""
+        return self._grid
+
+    def occupied_xy(self, threshold: float | None = None) -> np.ndarray:
+        """World centres (N×2) of the occupied cells (the grid's default threshold)."""
+        return self._grid.occupied_xy(threshold)
+
+    def integrate_depth(
+        self, frame: DepthFrame, world_T_walker: np.ndarray, key: Hashable | None = None
+    ) -> None:
+        """Add a depth frame taken at the walker pose (x, y, θ)."""
+        intr = frame.intrinsics
+        half_fov = self.config.view_half_fov_rad
+        if half_fov is None:
+            half_fov = float(np.arctan(intr.width / (2.0 * intr.fx)))
+        view = ViewWedge(*self.config.view_range_m, half_fov)
+        obs = project_depth_frame(frame, self.calibration, self.config.depth, view)
+        self.integrate_observation(obs, world_T_walker, key)
+
+    def integrate_scan(
+        self,
+        scan: LaserScan,
+        pose: np.ndarray,
+        sensor_offset: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 0.0),
+        key: Hashable | None = None,
+    ) -> None:
+        """Add a planar laser scan taken at the walker pose (x, y, θ).
+
+        sensor_offset = (x, y, yaw) of the laser on the walker.
+        """
+        obs = scan_to_observation(scan, sensor_offset, self.config.scan)
+        self.integrate_observation(obs, pose, key)
+
+    def integrate_observation(
+        self, obs: PlanarObservation, pose: np.ndarray, key: Hashable | None = None
+    ) -> None:
+        """Add any walker-frame observation at the walker pose (x, y, θ)."""
+        pose = as_pose(pose, "pose")
+        obs = obs.compacted(self._quantum)
+        if key is not None:
+            self._keyframes.pop(key, None)
+            self._keyframes[key] = _Keyframe(obs, pose)
+            limit = self.config.max_keyframes
+            if limit is not None and len(self._keyframes) > limit:
+                del self._keyframes[next(iter(self._keyframes))]
+        self._grid.integrate(obs.in_world(pose), centre_xy=pose[:2])
+
+    def rebuild(self, poses: Mapping[Hashable, np.ndarray] | None = None) -> None:
+        """Re-create the map from the kept keyframes, in the order they were kept.
+
+        `poses` gives revised walker poses by key; keyframes not in it keep their pose.
+        Unkeyed frames are not in the rebuilt map. Raises ValueError for unknown keys.
+        """
+        poses = poses or {}
+        unknown = [k for k in poses if k not in self._keyframes]
+        if unknown:
+            raise ValueError(f"no keyframe kept under keys {unknown[:5]}")
+        revised = {key: as_pose(pose, f"poses[{key!r}]") for key, pose in poses.items()}
+        for key, pose in revised.items():
+            self._keyframes[key] = _Keyframe(self._keyframes[key].obs, pose)
+        self._grid.reset()
+        for kf in self._keyframes.values():
+            self._grid.integrate(kf.obs.in_world(kf.pose), centre_xy=kf.pose[:2])
+
+    def keys(self) -> Iterator[Hashable]:
+        """Keys of the kept keyframes, oldest first."""
+        return iter(list(self._keyframes))
+
+    def keyframe_pose(self, key: Hashable) -> np.ndarray:
+        """The pose the keyframe `key` was last integrated at."""
+        return self._keyframes[key].pose.copy()
+
+    def forget(self, key: Hashable) -> None:
+        """Stop keeping keyframe `key` (the current map is unchanged)."""
+        del self._keyframes[key]
+
+    @property
+    def keyframe_nbytes(self) -> int:
+        """Memory held by the kept keyframes' points [bytes]."""
+        return sum(kf.obs.nbytes for kf in self._keyframes.values())
+
+    def reset(self) -> None:
+        """Empty map, no keyframes."""
+        self._grid.reset()
+        self._keyframes.clear()
