@@ -70,7 +70,13 @@ class OpenLoop(Controller):
             return BrakeCommand(inp.t, off, off, "open-loop")
         hfov = math.atan(self.cal.depth_intrinsics.width / 2 / self.cal.depth_intrinsics.fx)
         turn = choose_turn(
-            pts, ref, math.radians(cfg.arc_half_deg), cfg.n_arcs, hfov, far, cfg.unseen_free_radius_m
+            pts,
+            ref,
+            math.radians(cfg.arc_half_deg),
+            cfg.n_arcs,
+            hfov,
+            far,
+            cfg.unseen_free_radius_m,
         )
         self.last_direction = turn.direction
         torque = off + (brake.torque_max_nm - off) * level
@@ -92,5 +98,7 @@ class Manual(Controller):
         return BrakeCommand(inp.t, self.off, self.off, "none")
 
 
-CONTROLLERS.register("open-loop", OpenLoopConfig, "brake torque from front distance, eq 5.13")(OpenLoop)
+CONTROLLERS.register("open-loop", OpenLoopConfig, "brake torque from front distance, eq 5.13")(
+    OpenLoop
+)
 CONTROLLERS.register("none", ManualConfig, "manual baseline: brakes released")(Manual)

@@ -90,7 +90,10 @@ def distance_to_outlines(points: np.ndarray, polygons: Sequence[np.ndarray]) -> 
 
 
 def map_scores(
-    occupied_xy: np.ndarray, cell_area_m2: float, polygons: Sequence[np.ndarray], tolerance_m: float = 0.1
+    occupied_xy: np.ndarray,
+    cell_area_m2: float,
+    polygons: Sequence[np.ndarray],
+    tolerance_m: float = 0.1,
 ) -> dict[str, float]:
     """Map precision (share of occupied cells within tolerance of a true obstacle) and the
     phantom area (occupied area farther than tolerance from every obstacle: the dragging)."""

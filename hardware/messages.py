@@ -44,7 +44,9 @@ class CameraIntrinsics:
     cy: float
 
     @classmethod
-    def from_fov(cls, width: int, height: int, hfov_rad: float, vfov_rad: float) -> CameraIntrinsics:
+    def from_fov(
+        cls, width: int, height: int, hfov_rad: float, vfov_rad: float
+    ) -> CameraIntrinsics:
         fx = (width / 2.0) / np.tan(hfov_rad / 2.0)
         fy = (height / 2.0) / np.tan(vfov_rad / 2.0)
         return cls(width, height, float(fx), float(fy), (width - 1) / 2.0, (height - 1) / 2.0)

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -29,10 +30,13 @@ class Localizer(ABC):
     """Consumes messages in time order; reports the current pose and the trajectory.
 
     Messages a localizer does not use are ignored. `revision` increases whenever past
-    poses change (smoothers), so a mapper knows to rebuild from keyframes.
+    poses change (smoothers), so a mapper knows to rebuild from keyframes. Every
+    localizer's config has an `initial_pose` (x, y, θ): the pose that defines the map
+    frame (a trial log records it in its config as "initial_pose").
     """
 
     revision: int = 0
+    config: Any  # the typed config the localizer was built with
 
     @abstractmethod
     def process(self, msg: Message) -> None: ...
@@ -57,6 +61,15 @@ def available() -> list[str]:
     return LOCALIZERS.names()
 
 
-def create(name: str, calibration: WalkerCalibration, config: Any = None) -> Localizer:
-    """Build the localizer registered as `name` with `config` (its defaults when None)."""
+def create(
+    name: str,
+    calibration: WalkerCalibration,
+    config: Any = None,
+    initial_pose: Sequence[float] | None = None,
+) -> Localizer:
+    """Build the localizer registered as `name` with `config` (its defaults when None),
+    starting at `initial_pose` when given (overrides the config's)."""
+    if initial_pose is not None:
+        base = config if config is not None else LOCALIZERS.spec(name).config_type()
+        config = replace(base, initial_pose=tuple(float(v) for v in initial_pose))
     return LOCALIZERS.create(name, calibration, config=config)

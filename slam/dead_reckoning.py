@@ -22,7 +22,8 @@ class DeadReckoningConfig:
     initial_pose: (x, y, θ) at the first message.
     wheel_noise_m: per-wheel distance noise as a random walk, σ² = wheel_noise_m·|distance
         rolled| [m²/m]; 0.0025 gives σ = 5 cm after 1 m (the thesis's 5 % encoder error).
-    velocity_noise: for velocity odometry, σ_v = velocity_noise·|v|, σ_ω = velocity_noise·|ω| + 0.01.
+    velocity_noise: for velocity odometry, σ_v = velocity_noise·|v| and
+        σ_ω = velocity_noise·|ω| + 0.01.
     """
 
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)

@@ -8,7 +8,7 @@ import numpy as np
 
 
 def arc_increment(ds: float, dtheta: float, theta: float) -> tuple[float, float]:
-    """World-frame (dx, dy) of an exact circular arc of length ds turning by dtheta from heading theta.
+    """World-frame (dx, dy) of an exact arc of length ds turning by dtheta from heading theta.
 
     The chord of the arc has length ds·sinc(dθ/2) and points along θ + dθ/2; this form
     is exact for any dθ and stable as dθ → 0 (straight line).

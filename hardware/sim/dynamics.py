@@ -114,7 +114,11 @@ def step(
 
 
 def steady_state_radius(
-    params: WalkerParams, handle_left: float, handle_right: float, brake_left: float, brake_right: float
+    params: WalkerParams,
+    handle_left: float,
+    handle_right: float,
+    brake_left: float,
+    brake_right: float,
 ) -> float:
     """Turn radius R = v / φ̇ at steady state (eq 5.9); +inf when going straight."""
     p = params

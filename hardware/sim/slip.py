@@ -30,7 +30,8 @@ def surface_coefficient(surface: str | float) -> float:
             value = float(surface)
         except ValueError:
             raise ValueError(
-                f"unknown surface '{surface}'; valid: {', '.join(SURFACES)} or a number in [0, 0.95]"
+                f"unknown surface '{surface}'; valid: {', '.join(SURFACES)} "
+                "or a number in [0, 0.95]"
             ) from None
     else:
         value = float(surface)

@@ -4,9 +4,9 @@
 obstacles are: they track their position by feel (their own dead reckoning of the
 walker's motion, which drifts — that drift is the impairment), steer toward the route
 by pure pursuit through differential handle force, and feel the brakes only through the
-walker's dynamics. A collision is felt: the user re-orients (their belief snaps back to
-the truth) and carries on. `ConstantPush` applies fixed handle forces (physics tests,
-parameter sweeps).
+walker's dynamics. A collision is felt: the user steps back briefly, re-orients (their
+belief snaps back to the truth) and carries on. `ConstantPush` applies fixed handle
+forces (physics tests, parameter sweeps).
 """
 
 from __future__ import annotations
@@ -28,7 +28,9 @@ class UserParams:
     max_push_n: largest total forward force; max_steer_n: largest handle-force difference;
     heading_drift_rad_per_sqrt_m: random walk of the user's sense of heading per √metre
     walked (the impairment); heading_bias_rad_per_m: a constant veer of that sense;
-    distance_scale_error: relative error of their sense of distance walked.
+    distance_scale_error: relative error of their sense of distance walked;
+    backoff_s / backoff_speed_mps / backoff_turn_rad_s: after a collision, how long and how
+    fast they pull the walker back, swinging its front away from what they touched.
     """
 
     speed_mps: float = 0.75
@@ -41,6 +43,9 @@ class UserParams:
     heading_bias_rad_per_m: float = 0.0
     distance_scale_error: float = 0.0
     finish_radius_m: float = 0.4
+    backoff_s: float = 1.0
+    backoff_speed_mps: float = 0.25
+    backoff_turn_rad_s: float = 0.4
 
 
 class ConstantPush:
@@ -53,7 +58,7 @@ class ConstantPush:
     def forces(self, state: WalkerState, dt: float) -> tuple[float, float]:
         return self.left_n, self.right_n
 
-    def on_collision(self, state: WalkerState) -> None:
+    def on_collision(self, state: WalkerState, point: np.ndarray) -> None:
         pass
 
 
@@ -80,6 +85,8 @@ class RouteFollower:
         self.belief = np.array([start.x, start.y, start.phi])
         self.progress_m = 0.0
         self.finished = False
+        self._backoff_left_s = 0.0
+        self._backoff_turn = 0.0
 
     # -- belief -----------------------------------------------------------------------
     def _feel_motion(self, state: WalkerState, dt: float) -> None:
@@ -87,17 +94,29 @@ class RouteFollower:
         walked = abs(state.v * dt)
         dphi = state.omega * dt + self.p.heading_bias_rad_per_m * walked
         if walked > 0:
-            dphi += self.p.heading_drift_rad_per_sqrt_m * math.sqrt(walked) * self.rng.standard_normal()
+            dphi += (
+                self.p.heading_drift_rad_per_sqrt_m * math.sqrt(walked) * self.rng.standard_normal()
+            )
         th = self.belief[2] + 0.5 * dphi
         self.belief += (ds * math.cos(th), ds * math.sin(th), dphi)
 
-    def on_collision(self, state: WalkerState) -> None:
+    def on_collision(self, state: WalkerState, point: np.ndarray) -> None:
+        """Felt a contact at `point` (world): step back, swinging the front away from it."""
         self.belief[:] = (state.x, state.y, state.phi)
+        self._backoff_left_s = self.p.backoff_s
+        lateral = -math.sin(state.phi) * (point[0] - state.x) + math.cos(state.phi) * (
+            point[1] - state.y
+        )
+        # Backing up with φ̇ < 0 swings the front to the right: away from a contact on the left.
+        self._backoff_turn = -math.copysign(self.p.backoff_turn_rad_s, lateral)
 
     # -- route ------------------------------------------------------------------------
     def _point_at(self, s: float) -> np.ndarray:
         return np.array(
-            [np.interp(s, self.arclen, self.route[:, 0]), np.interp(s, self.arclen, self.route[:, 1])]
+            [
+                np.interp(s, self.arclen, self.route[:, 0]),
+                np.interp(s, self.arclen, self.route[:, 1]),
+            ]
         )
 
     def _update_progress(self) -> None:
@@ -106,7 +125,10 @@ class RouteFollower:
         lo, hi = self.progress_m - 0.5, self.progress_m + 2.0
         s = np.linspace(max(lo, 0.0), min(hi, self.arclen[-1]), 60)
         pts = np.column_stack(
-            [np.interp(s, self.arclen, self.route[:, 0]), np.interp(s, self.arclen, self.route[:, 1])]
+            [
+                np.interp(s, self.arclen, self.route[:, 0]),
+                np.interp(s, self.arclen, self.route[:, 1]),
+            ]
         )
         d = np.hypot(pts[:, 0] - self.belief[0], pts[:, 1] - self.belief[1])
         self.progress_m = max(self.progress_m, float(s[int(np.argmin(d))]))
@@ -117,17 +139,23 @@ class RouteFollower:
         self._update_progress()
         remaining = self.arclen[-1] - self.progress_m
         end = self.route[-1]
-        if remaining < self.p.finish_radius_m and math.dist(self.belief[:2], end) < self.p.finish_radius_m:
+        if (
+            remaining < self.p.finish_radius_m
+            and math.dist(self.belief[:2], end) < self.p.finish_radius_m
+        ):
             self.finished = True
         target = self._point_at(self.progress_m + self.p.lookahead_m)
         bearing = math.atan2(target[1] - self.belief[1], target[0] - self.belief[0])
         err = math.remainder(bearing - self.belief[2], 2.0 * math.pi)
 
         v_des = self.p.speed_mps * max(0.3, math.cos(err)) * min(1.0, remaining / 0.8 + 0.2)
-        if self.finished:
-            v_des = 0.0
         v_ref = max(abs(state.v), 0.3)
         omega_des = 2.0 * v_ref * math.sin(err) / self.p.lookahead_m
+        if self.finished:
+            v_des = 0.0
+        elif self._backoff_left_s > 0.0:
+            self._backoff_left_s -= dt
+            v_des, omega_des = -self.p.backoff_speed_mps, self._backoff_turn
 
         w = self.walker
         total = w.damping * v_des + self.p.speed_gain * (v_des - state.v)

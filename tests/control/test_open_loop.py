@@ -40,7 +40,9 @@ def test_to_walker_frame():
 
 def test_turn_toward_larger_free_area():
     # obstacle on the right half at 1 m, left half open and in view
-    pts = np.array([[0.41 + 1.0 * math.cos(a), 1.0 * math.sin(a)] for a in np.radians(np.arange(-44, 0, 1.0))])
+    pts = np.array(
+        [[0.41 + 1.0 * math.cos(a), 1.0 * math.sin(a)] for a in np.radians(np.arange(-44, 0, 1.0))]
+    )
     d = choose_turn(pts, 0.41, math.radians(45), 32, math.radians(28.5), 3.5, 0.0)
     assert d.direction == 1
     # hand-computed: in-view left arcs have r = 3.5, unseen left arcs 0

@@ -1,7 +1,14 @@
 import numpy as np
 import pytest
 
-from experiments.metrics import align_se2, ate, braking_impulse, distance_to_outlines, map_scores, rpe
+from experiments.metrics import (
+    align_se2,
+    ate,
+    braking_impulse,
+    distance_to_outlines,
+    map_scores,
+    rpe,
+)
 from hardware.messages import BrakeCommand
 from slam.geometry import compose
 from slam.trajectory import Trajectory
@@ -57,5 +64,9 @@ def test_distances_to_square():
 
 
 def test_braking_impulse_above_residual():
-    cmds = [BrakeCommand(0.0, 0.068, 0.068), BrakeCommand(1.0, 2.068, 0.068), BrakeCommand(3.0, 0.068, 0.068)]
+    cmds = [
+        BrakeCommand(0.0, 0.068, 0.068),
+        BrakeCommand(1.0, 2.068, 0.068),
+        BrakeCommand(3.0, 0.068, 0.068),
+    ]
     assert braking_impulse(cmds, 0.068, 10.0) == pytest.approx(4.0)

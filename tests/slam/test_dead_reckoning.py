@@ -31,7 +31,11 @@ def ticks_for_arc(radius, angle, steps, cal=CAL):
 def test_arc_end_pose(radius):
     angle = 1.5 if radius > 0 else -1.5
     dr = create("dead-reckoning", CAL)
-    for m in ticks_for_arc(abs(radius), abs(angle), 400) if radius > 0 else _mirror(ticks_for_arc(abs(radius), abs(angle), 400)):
+    for m in (
+        ticks_for_arc(abs(radius), abs(angle), 400)
+        if radius > 0
+        else _mirror(ticks_for_arc(abs(radius), abs(angle), 400))
+    ):
         dr.process(m)
     x, y, th = dr.estimate().pose
     ex, ey = radius * math.sin(angle), radius * (1 - math.cos(angle))
@@ -75,7 +79,7 @@ def test_velocity_odometry_circle():
 
 
 def test_unknown_localizer_lists_valid_names():
-    with pytest.raises(UnknownNameError, match="valid: .*dead-reckoning"):
+    with pytest.raises(UnknownNameError, match=r"valid: .*dead-reckoning"):
         create("kalman-magic", CAL)
 
 

@@ -2,11 +2,23 @@ import numpy as np
 import pytest
 
 from hardware.frames import invert_transform, make_transform, rot_rpy, transform_points
-from slam.geometry import between, compose, from_matrix, inverse, to_matrix, transform_points as tp2, wrap_angle
+from slam.geometry import (
+    between,
+    compose,
+    from_matrix,
+    inverse,
+    to_matrix,
+    wrap_angle,
+)
+from slam.geometry import (
+    transform_points as tp2,
+)
 
 
 def random_poses(rng, n):
-    return np.column_stack([rng.uniform(-5, 5, n), rng.uniform(-5, 5, n), rng.uniform(-np.pi, np.pi, n)])
+    return np.column_stack(
+        [rng.uniform(-5, 5, n), rng.uniform(-5, 5, n), rng.uniform(-np.pi, np.pi, n)]
+    )
 
 
 def test_wrap_angle_range():

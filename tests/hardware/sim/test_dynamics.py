@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from hardware.sim.dynamics import Brakes, WalkerParams, WalkerState, step, steady_state_radius
+from hardware.sim.dynamics import Brakes, WalkerParams, WalkerState, steady_state_radius, step
 from hardware.sim.slip import Encoders, SlipModel, surface_coefficient
 
 
@@ -27,7 +27,7 @@ def run(params, handle_l, handle_r, torque_l, torque_r, seconds=40.0, dt=0.005):
 )
 def test_steady_state_turn_radius_matches_eq_5_9(handle, torques):
     p = WalkerParams()
-    s, brakes = run(p, *handle, *torques)
+    s, _ = run(p, *handle, *torques)
     wl, wr = s.wheel_speeds(p.half_track_m)
     assert wl > 0.1 and wr > 0.1  # both wheels rolling forward: full Coulomb brake force
     fl, fr = (t / p.wheel_radius_m for t in torques)

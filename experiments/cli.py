@@ -1,0 +1,237 @@
+"""`walkerslam`: the command-line interface. Each command calls one function of
+`experiments.run` and prints a short summary; known errors become one line and exit 2."""
+
+from __future__ import annotations
+
+import functools
+import json
+from collections.abc import Callable
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+app = typer.Typer(
+    help="walker-slam: localization and mapping under brake-induced wheel slip.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+console = Console()
+err_console = Console(stderr=True)
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from hardware.log import LogError
+    from hardware.registry import UnknownNameError
+
+    return (LogError, UnknownNameError, FileNotFoundError, ValueError)
+
+
+def friendly(fn: Callable) -> Callable:
+    """Turn bad input into `error: …` on one line and exit code 2, never a traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except _user_errors() as exc:
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            err_console.print(f"[bold red]error:[/] {msg}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+
+    return wrapper
+
+
+@contextmanager
+def progress_bar(label: str, total: float | None):
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed:>6.1f}/{task.total:.0f} s"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        console=err_console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task(label, total=total)
+        last = [0.0]
+
+        def update(t: float) -> None:
+            if t - last[0] >= 0.5:
+                last[0] = t
+                bar.update(task, completed=t)
+
+        yield update
+
+
+def _print_metrics(metrics: dict, files: dict[str, Path]) -> None:
+    table = Table(show_header=False, box=None)
+    for key in (
+        "duration_s",
+        "ate_rmse_m",
+        "ate_rmse_unaligned_m",
+        "rpe_trans_m",
+        "final_position_error_m",
+        "map_precision",
+        "phantom_area_m2",
+        "braking_impulse_nms",
+        "realtime_factor",
+    ):
+        if key in metrics:
+            table.add_row(key, f"{metrics[key]:.3f}")
+    if "collisions" in metrics:
+        c = metrics["collisions"]
+        table.add_row(
+            "collisions",
+            f"{c['total']} (front {c['front']}, side {c['side']}, rear-wheel {c['rear-wheel']})",
+        )
+    if "reference_map" in metrics:
+        r = metrics["reference_map"]
+        table.add_row(
+            "map from true poses",
+            f"precision {r['map_precision']:.3f}, phantom {r['phantom_area_m2']:.3f} m²",
+        )
+    console.print(table)
+    console.print("files: " + ", ".join(str(p) for p in files.values()), highlight=False)
+
+
+@app.command()
+@friendly
+def simulate(
+    output: Annotated[Path, typer.Option("-o", "--output", help="trial log to write (.mcap)")],
+    course: Annotated[
+        str, typer.Option(help="built-in course name or a course JSON file")
+    ] = "thesis-course",
+    controller: Annotated[str, typer.Option(help="braking controller")] = "open-loop",
+    localizer: Annotated[
+        str, typer.Option(help="localizer the controller uses")
+    ] = "dead-reckoning",
+    surface: Annotated[
+        str, typer.Option(help="clean, dusty or a slip coefficient in [0, 0.95]")
+    ] = "dusty",
+    seed: Annotated[int, typer.Option(help="random seed of the run")] = 0,
+    duration: Annotated[float, typer.Option(help="longest simulated time [s]")] = 300.0,
+) -> None:
+    """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log."""
+    from experiments.run import simulate_trial
+
+    with progress_bar(f"simulating {course}", duration) as update:
+        res = simulate_trial(
+            course,
+            output,
+            controller=controller,
+            localizer=localizer,
+            surface=surface,
+            seed=seed,
+            duration_s=duration,
+            progress=update,
+        )
+    c = res.collisions
+    console.print(
+        f"recorded {res.sim_time_s:.1f} s of {course} "
+        f"({'route completed' if res.finished_route else 'time limit'}) "
+        f"in {res.wall_time_s:.1f} s → {res.path}\ncollisions: {c['total']} (front {c['front']}, "
+        f"side {c['side']}, rear-wheel {c['rear-wheel']})",
+        highlight=False,
+    )
+
+
+@app.command()
+@friendly
+def replay(
+    log: Annotated[Path, typer.Argument(help="trial log (.mcap)")],
+    localizer: Annotated[str, typer.Option(help="localizer to run")] = "dead-reckoning",
+    out: Annotated[Path, typer.Option(help="output folder")] = Path("out/replay"),
+) -> None:
+    """Replay a trial log through a localizer and the mapper; write maps, trajectories,
+    metrics."""
+    from experiments.run import replay_log
+    from hardware.log import read_log
+
+    trial = read_log(log)  # fail fast on a bad file, before the progress bar
+    t0, t1 = trial.time_range if trial.message_count else (0.0, 0.0)
+    with progress_bar(f"replaying with {localizer}", t1 - t0) as update:
+        res = replay_log(log, out, localizer=localizer, progress=lambda t: update(t - t0))
+    _print_metrics(res.metrics, res.files)
+
+
+@app.command()
+@friendly
+def demo(
+    out: Annotated[Path, typer.Option(help="output folder")] = Path("out/demo"),
+    seed: Annotated[int, typer.Option(help="random seed")] = 0,
+    duration: Annotated[float, typer.Option(help="longest simulated time [s]")] = 300.0,
+) -> None:
+    """Simulate thesis-course on a dusty floor with open-loop braking, replay it with dead
+    reckoning, and write maps, trajectories and error figures against ground truth."""
+    from experiments.run import replay_log, simulate_trial
+
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "trial.mcap"
+    with progress_bar("simulating thesis-course (dusty, open-loop)", duration) as update:
+        sim = simulate_trial(
+            "thesis-course",
+            log,
+            controller="open-loop",
+            surface="dusty",
+            seed=seed,
+            duration_s=duration,
+            progress=update,
+        )
+    console.print(
+        f"simulated {sim.sim_time_s:.1f} s in {sim.wall_time_s:.1f} s → {log}", highlight=False
+    )
+    with progress_bar("replaying with dead-reckoning", sim.sim_time_s) as update:
+        res = replay_log(log, out, localizer="dead-reckoning", progress=update)
+    m = res.metrics
+    ref_phantom = m.get("reference_map", {}).get("phantom_area_m2", float("nan"))
+    console.print(
+        "\n[bold]Dead reckoning under brake slip[/]: the estimate drifts "
+        f"{m.get('final_position_error_m', float('nan')):.2f} m by the end; obstacles seen "
+        f"during braked turns are dragged across the map ({m.get('phantom_area_m2', 0):.2f} m² of "
+        f"phantom obstacles vs {ref_phantom:.2f} m² "
+        "when the same frames are mapped at the true poses).",
+        highlight=False,
+    )
+    _print_metrics(m, res.files)
+    console.print(
+        f"\nopen {out / 'maps_side_by_side.png'} for the map comparison.", highlight=False
+    )
+
+
+@app.command(name="list")
+def list_names() -> None:
+    """List built-in courses, localizers and controllers."""
+    from control.base import CONTROLLERS
+    from hardware.sim.world import available_courses
+    from slam.base import LOCALIZERS
+
+    console.print("courses:     " + ", ".join(available_courses()))
+    console.print("localizers:  " + ", ".join(LOCALIZERS.names()))
+    console.print("controllers: " + ", ".join(CONTROLLERS.names()))
+
+
+@app.command()
+@friendly
+def info(log: Annotated[Path, typer.Argument(help="trial log (.mcap)")]) -> None:
+    """Summarise a trial log: topics, message counts, time span, metadata."""
+    from hardware.log import read_log
+
+    trial = read_log(log)
+    t0, t1 = trial.time_range if trial.message_count else (0.0, 0.0)
+    console.print(
+        f"{log}: {trial.message_count} messages over {t1 - t0:.1f} s"
+        f"{'' if trial.complete else ' (incomplete: recovered)'}",
+        highlight=False,
+    )
+    for topic, typ in sorted(trial.topics.items()):
+        console.print(f"  {topic:24s} {typ.__name__}")
+    console.print("metadata: " + ", ".join(sorted(trial.metadata)))
+    cfg = trial.metadata.get("config")
+    if cfg:
+        console.print(json.dumps({k: v for k, v in cfg.items() if not isinstance(v, dict)}))

@@ -1,0 +1,183 @@
+"""source → localizer → mapper (→ controller): one loop for replay, simulation and live use.
+
+`Pipeline.feed(msg)` is the whole data path: every message goes to the localizer; depth
+frames and laser scans go to the mapper at the localizer's current pose (and, when
+ground truth is known, to a reference mapper at the true pose, so the two maps can be
+compared). `run_closed_loop` adds the controller and the brake sink around a simulator.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from control.base import ControlInput, Controller
+from hardware.calibration import WalkerCalibration
+from hardware.messages import (
+    BrakeCommand,
+    Collision,
+    DepthFrame,
+    GroundTruthPose,
+    LaserScan,
+    Message,
+)
+from mapping.mapper import MapperConfig, OccupancyMapper
+from slam.base import Localizer
+from slam.trajectory import Trajectory
+
+# Ground truth is used for the reference map only when it is this close in time.
+GROUNDTRUTH_TOLERANCE_S = 0.03
+
+
+@dataclass
+class Recorded:
+    """What a run saw besides the localizer's own output."""
+
+    groundtruth_t: list[float] = field(default_factory=list)
+    groundtruth: list[tuple[float, float, float]] = field(default_factory=list)
+    commands: list[BrakeCommand] = field(default_factory=list)
+    collisions: list[Collision] = field(default_factory=list)
+    counts: dict[str, int] = field(default_factory=dict)
+    t_first: float = math.nan
+    t_last: float = math.nan
+
+    def groundtruth_trajectory(self) -> Trajectory | None:
+        if not self.groundtruth_t:
+            return None
+        t = np.array(self.groundtruth_t)
+        keep = np.concatenate([[True], np.diff(t) > 0])
+        return Trajectory(t[keep], np.array(self.groundtruth)[keep])
+
+
+class Pipeline:
+    """Feeds messages to a localizer and the occupancy mapper(s)."""
+
+    def __init__(
+        self,
+        localizer: Localizer,
+        calibration: WalkerCalibration,
+        mapper_config: MapperConfig | None = None,
+        reference_map: bool = True,
+    ) -> None:
+        self.localizer = localizer
+        self.calibration = calibration
+        self.mapper = OccupancyMapper(calibration, mapper_config)
+        self.reference = OccupancyMapper(calibration, mapper_config) if reference_map else None
+        self.recorded = Recorded()
+        self._latest_truth: GroundTruthPose | None = None
+
+    def feed(self, msg: Message) -> None:
+        rec = self.recorded
+        name = type(msg).__name__
+        rec.counts[name] = rec.counts.get(name, 0) + 1
+        if math.isnan(rec.t_first):
+            rec.t_first = msg.t
+        rec.t_last = max(msg.t, rec.t_last) if not math.isnan(rec.t_last) else msg.t
+        self.localizer.process(msg)
+        if isinstance(msg, GroundTruthPose):
+            self._latest_truth = msg
+            rec.groundtruth_t.append(msg.t)
+            rec.groundtruth.append((msg.x, msg.y, msg.theta))
+        elif isinstance(msg, BrakeCommand):
+            rec.commands.append(msg)
+        elif isinstance(msg, Collision):
+            rec.collisions.append(msg)
+        elif isinstance(msg, DepthFrame | LaserScan):
+            self._integrate(self.mapper, msg, self.localizer.estimate().pose)
+            truth = self._latest_truth
+            if (
+                self.reference is not None
+                and truth
+                and abs(truth.t - msg.t) <= GROUNDTRUTH_TOLERANCE_S
+            ):
+                self._integrate(self.reference, msg, np.array([truth.x, truth.y, truth.theta]))
+
+    @staticmethod
+    def _integrate(mapper: OccupancyMapper, msg: DepthFrame | LaserScan, pose: np.ndarray) -> None:
+        if isinstance(msg, DepthFrame):
+            mapper.integrate_depth(msg, pose)
+        else:
+            mapper.integrate_scan(msg, pose)
+
+    def run(
+        self, source: Iterable[Message], progress: Callable[[float], None] | None = None
+    ) -> None:
+        for msg in source:
+            self.feed(msg)
+            if progress is not None:
+                progress(msg.t)
+
+
+class VelocityEstimator:
+    """Forward speed and yaw rate from the localizer's poses over the last few ticks
+    (the thesis averaged over the last two control steps)."""
+
+    def __init__(self, window: int = 3) -> None:
+        self._poses: deque[tuple[float, np.ndarray]] = deque(maxlen=window)
+
+    def update(self, t: float, pose: np.ndarray) -> tuple[float, float]:
+        self._poses.append((t, pose.copy()))
+        (t0, p0), (t1, p1) = self._poses[0], self._poses[-1]
+        dt = t1 - t0
+        if dt <= 0:
+            return 0.0, 0.0
+        heading = 0.5 * (p0[2] + p1[2]) if abs(p1[2] - p0[2]) < math.pi else p1[2]
+        d = p1[:2] - p0[:2]
+        v = (d[0] * math.cos(heading) + d[1] * math.sin(heading)) / dt
+        omega = math.remainder(p1[2] - p0[2], 2 * math.pi) / dt
+        return v, omega
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Closed-loop timing: the controller runs at rate_hz; its command reaches the brakes
+    latency_s later (computation + serial + brake driver)."""
+
+    rate_hz: float = 10.0
+    latency_s: float = 0.03
+
+
+def run_closed_loop(
+    sim,
+    pipeline: Pipeline,
+    controller: Controller,
+    loop: LoopConfig = LoopConfig(),
+    sink: Callable[[Message], None] | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> None:
+    """Run a simulator in closed loop until it is done.
+
+    Each tick: advance the simulator, feed its messages through the pipeline, compute a
+    brake command from the localizer's pose and the shared map, and apply it after the
+    latency. Every message and command also goes to `sink` (e.g. a log writer).
+    """
+    period = 1.0 / loop.rate_hz
+    velocity = VelocityEstimator()
+    k = 0
+
+    def advance(t: float) -> None:
+        for msg in sim.step_until(t):
+            pipeline.feed(msg)
+            if sink is not None:
+                sink(msg)
+
+    while not sim.done:
+        k += 1
+        t = k * period
+        advance(t)
+        if sim.done:
+            break
+        est = pipeline.localizer.estimate()
+        v, omega = velocity.update(t, est.pose)
+        cmd = controller.command(ControlInput(t, pipeline.mapper.occupied_xy(), est.pose, v, omega))
+        pipeline.feed(cmd)
+        if sink is not None:
+            sink(cmd)
+        advance(t + loop.latency_s)
+        sim.apply(cmd)
+        if progress is not None:
+            progress(sim.t)

@@ -1,0 +1,248 @@
+"""The simulated walker as a source of messages and a sink of brake commands.
+
+`Simulator.step_until(t)` integrates the dynamics at the physics rate and returns the
+sensor messages that fell due (encoder ticks, depth frames, tag detections, ground truth,
+collisions); `Simulator.apply(cmd)` sets the brake command (quantised to the board's PWM
+as the real brakes are). The closed loop (localizer, mapper, controller) is run by
+`experiments.pipeline`, exactly as with live hardware.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from hardware.calibration import WalkerCalibration
+from hardware.messages import (
+    BrakeCommand,
+    CameraIntrinsics,
+    Collision,
+    DepthFrame,
+    EncoderTicks,
+    GroundTruthPose,
+    Message,
+    TagDetections,
+)
+from hardware.sim.depth_camera import DepthCameraConfig, SimDepthCamera
+from hardware.sim.dynamics import Brakes, WalkerParams, WalkerState, step
+from hardware.sim.slip import Encoders, SlipModel, surface_coefficient
+from hardware.sim.tag_camera import SimTagCamera, TagCameraConfig
+from hardware.sim.user import ConstantPush, RouteFollower, UserParams
+from hardware.sim.world import World
+
+# Walker parts in the walker frame (x forward, y left; rear-axle origin): the frame is
+# 0.56 m wide and 0.74 m long; the rear wheels stick out 6.5 cm beyond it on each side
+# (0.69 m overall), which is why rear-wheel collisions dominate thesis Table 6.3.
+FRAME_POLYGON = np.array([[-0.10, -0.28], [0.64, -0.28], [0.64, 0.28], [-0.10, 0.28]])
+LEFT_WHEEL_POLYGON = np.array([[-0.102, 0.28], [0.102, 0.28], [0.102, 0.345], [-0.102, 0.345]])
+RIGHT_WHEEL_POLYGON = LEFT_WHEEL_POLYGON * np.array([1.0, -1.0])
+WALKER_PARTS = (
+    ("frame", FRAME_POLYGON),
+    ("left-wheel", LEFT_WHEEL_POLYGON[::-1]),
+    ("right-wheel", RIGHT_WHEEL_POLYGON),
+)
+# A contact with an obstacle counts as a new collision only after this long clear of it.
+COLLISION_REARM_S = 3.0
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything that defines a simulated trial besides the world.
+
+    Rates must divide physics_rate_hz. The software's calibration is the true walker
+    plus the *_error_m values (the thesis code used a 203 mm wheel; it measures 204 mm).
+    """
+
+    surface: str | float = "dusty"
+    seed: int = 0
+    duration_s: float = 300.0
+    physics_rate_hz: int = 200
+    encoder_rate_hz: int = 50
+    depth_rate_hz: int = 10
+    tag_rate_hz: int = 10
+    groundtruth_rate_hz: int = 50
+    depth_width: int = 160
+    depth_height: int = 120
+    wheel_diameter_error_m: float = -0.001
+    track_error_m: float = 0.0
+    walker: WalkerParams = field(default_factory=WalkerParams)
+    user: UserParams = field(default_factory=UserParams)
+    depth: DepthCameraConfig = field(default_factory=DepthCameraConfig)
+    tags: TagCameraConfig = field(default_factory=TagCameraConfig)
+
+    def __post_init__(self) -> None:
+        surface_coefficient(self.surface)
+        for name in ("encoder_rate_hz", "depth_rate_hz", "tag_rate_hz", "groundtruth_rate_hz"):
+            rate = getattr(self, name)
+            if rate <= 0 or self.physics_rate_hz % rate:
+                raise ValueError(
+                    f"{name}={rate} must divide physics_rate_hz={self.physics_rate_hz}"
+                )
+        if self.physics_rate_hz < 200:
+            raise ValueError("physics_rate_hz must be >= 200")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def calibration(self) -> WalkerCalibration:
+        """What the walker's software believes (encoders, track, cameras)."""
+        w = self.walker
+        base = WalkerCalibration()
+        hfov = 2 * math.atan(base.depth_intrinsics.width / 2 / base.depth_intrinsics.fx)
+        vfov = 2 * math.atan(base.depth_intrinsics.height / 2 / base.depth_intrinsics.fy)
+        return replace(
+            base,
+            wheel_diameter_m=w.wheel_diameter_m + self.wheel_diameter_error_m,
+            track_m=2 * w.half_track_m + self.track_error_m,
+            depth_intrinsics=CameraIntrinsics.from_fov(
+                self.depth_width, self.depth_height, hfov, vfov
+            ),
+        )
+
+
+class Simulator:
+    """A walker in a world, pushed by a user; see the module docstring."""
+
+    def __init__(
+        self, world: World, config: SimConfig, user: RouteFollower | ConstantPush | None = None
+    ):
+        self.world = world
+        self.config = config
+        self.calibration = config.calibration()
+        seeds = np.random.SeedSequence(config.seed).spawn(4)
+        rng_slip, rng_user, rng_depth, rng_tags = (np.random.default_rng(s) for s in seeds)
+        w = config.walker
+        x0, y0, th0 = world.start_pose
+        self.state = WalkerState(x=x0, y=y0, phi=th0)
+        self.brakes = Brakes(w)
+        self.slip = SlipModel(config.surface, w.brake_torque_max_nm / w.wheel_radius_m, rng_slip)
+        # The encoders turn with the *true* wheels; counts_per_rev as calibrated.
+        self.encoders = Encoders(w.wheel_diameter_m, self.calibration.counts_per_rev)
+        self.user = user or RouteFollower(world.route, self.state, w, config.user, rng_user)
+        self.depth_camera = SimDepthCamera(world, self.calibration, config.depth, rng_depth)
+        self.tag_camera = SimTagCamera(world, self.calibration, config.tags, rng_tags)
+        self.dt = 1.0 / config.physics_rate_hz
+        self.steps = 0
+        self._every = {
+            name: config.physics_rate_hz // getattr(config, f"{name}_rate_hz")
+            for name in ("encoder", "depth", "tag", "groundtruth")
+        }
+        self._last_contact: dict[str, float] = {}
+        self.last_slip = (0.0, 0.0)
+
+    @property
+    def t(self) -> float:
+        return self.steps * self.dt
+
+    @property
+    def done(self) -> bool:
+        return self.user.finished or self.t >= self.config.duration_s - 1e-9
+
+    def pose(self) -> np.ndarray:
+        return np.array([self.state.x, self.state.y, self.state.phi])
+
+    def apply(self, cmd: BrakeCommand) -> None:
+        """Set the brake command; torques pass through the board's PWM quantisation."""
+        cal = self.calibration.brake
+        self.brakes.set_command(cal.torque(cal.pwm(cmd.left_nm)), cal.torque(cal.pwm(cmd.right_nm)))
+
+    def step_until(self, t_end: float) -> list[Message]:
+        """Advance to t_end (or until done) and return the messages that fell due."""
+        out: list[Message] = []
+        if self.steps == 0:
+            out.extend(self._sensors(first=True))
+        while self.t + 0.5 * self.dt < t_end and not self.done:
+            self._physics_step(out)
+            out.extend(self._sensors())
+        return out
+
+    # -- internals --------------------------------------------------------------------
+    def _physics_step(self, out: list[Message]) -> None:
+        w, s, dt = self.config.walker, self.state, self.dt
+        handle_l, handle_r = self.user.forces(s, dt)
+        self.brakes.step(dt)
+        wl, wr = s.wheel_speeds(w.half_track_m)
+        f_bl, f_br = self.brakes.ground_forces(wl, wr)
+        step(s, w, handle_l, handle_r, f_bl, f_br, dt)
+        self.steps += 1
+        wl, wr = s.wheel_speeds(w.half_track_m)
+        self.last_slip = self.slip.step(dt, (f_bl, f_br))
+        self.encoders.roll(wl * dt, wr * dt, self.last_slip)
+        self._collide(out)
+
+    def _parts_in_world(self) -> list[tuple[str, np.ndarray]]:
+        c, sn = math.cos(self.state.phi), math.sin(self.state.phi)
+        rot = np.array([[c, -sn], [sn, c]])
+        off = np.array([self.state.x, self.state.y])
+        return [(name, poly @ rot.T + off) for name, poly in WALKER_PARTS]
+
+    def _collide(self, out: list[Message]) -> None:
+        contacts = self.world.contacts(self._parts_in_world())
+        if not contacts:
+            return
+        s = self.state
+        moved = np.zeros(2)
+        for c in sorted(contacts, key=lambda c: -c.depth):
+            # Push the walker out of the obstacle (less what earlier pushes already did
+            # along this normal: two parts touching one wall are pushed once), then remove
+            # the contact point's velocity into it with the least-effort (mass/inertia-
+            # weighted) change of (v, φ̇): an inelastic contact that respects the rear
+            # axle's no-sideways constraint.
+            normal = np.asarray(c.normal, float)
+            push = max(c.depth - float(moved @ normal), 0.0)
+            moved += push * normal
+            s.x += push * normal[0]
+            s.y += push * normal[1]
+            self._contact_impulse(np.asarray(c.point, float), np.asarray(c.normal, float))
+            last = self._last_contact.get(c.obstacle, -math.inf)
+            self._last_contact[c.obstacle] = self.t
+            if self.t - last > COLLISION_REARM_S:
+                kind = self._kind(c.part, c.normal)
+                out.append(
+                    Collision(self.t, kind, c.obstacle, float(c.point[0]), float(c.point[1]))
+                )
+                self.user.on_collision(s, np.asarray(c.point, float))
+
+    def _contact_impulse(self, point: np.ndarray, normal: np.ndarray) -> None:
+        s, w = self.state, self.config.walker
+        heading = np.array([math.cos(s.phi), math.sin(s.phi)])
+        r = point - np.array([s.x, s.y])
+        # contact-point velocity along the normal: J · (v, φ̇)
+        jac = np.array([heading @ normal, -r[1] * normal[0] + r[0] * normal[1]])
+        approach = jac[0] * s.v + jac[1] * s.omega
+        if approach >= 0.0:
+            return
+        inv_mass = np.array([1.0 / w.mass_kg, 1.0 / w.yaw_inertia])
+        denom = float(jac @ (inv_mass * jac))
+        if denom <= 1e-12:
+            return
+        impulse = -approach / denom
+        s.v += impulse * inv_mass[0] * jac[0]
+        s.omega += impulse * inv_mass[1] * jac[1]
+
+    def _kind(self, part: str, normal: np.ndarray) -> str:
+        if part.endswith("wheel"):
+            return "rear-wheel"
+        c, sn = math.cos(self.state.phi), math.sin(self.state.phi)
+        normal_forward = c * normal[0] + sn * normal[1]
+        # Pushed back (normal against the heading) means the front struck the obstacle.
+        return "front" if normal_forward < -0.7 else "side"
+
+    def _sensors(self, first: bool = False) -> list[Message]:
+        out: list[Message] = []
+        t, k = self.t, self.steps
+        e = self._every
+        if first or k % e["groundtruth"] == 0:
+            s = self.state
+            out.append(GroundTruthPose(t, s.x, s.y, s.phi))
+        if first or k % e["encoder"] == 0:
+            left, right = self.encoders.counts()
+            out.append(EncoderTicks(t, left, right))
+        if first or k % e["depth"] == 0:
+            depth = self.depth_camera.render(self.pose())
+            out.append(DepthFrame(t, depth, self.calibration.depth_intrinsics))
+        if first or (k + e["tag"] // 2) % e["tag"] == 0:
+            out.append(TagDetections(t, tuple(self.tag_camera.detect(self.pose()))))
+        return out
