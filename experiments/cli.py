@@ -204,6 +204,51 @@ def demo(
     )
 
 
+@app.command(name="slip-push")
+@friendly
+def slip_push(
+    out: Annotated[Path, typer.Option(help="output folder")] = Path("out/slip-push"),
+    surface: Annotated[
+        list[str] | None, typer.Option(help="surfaces to compare [default: clean, dusty]")
+    ] = None,
+    level: Annotated[float, typer.Option(help="brake level, fraction of full PWM")] = 0.6,
+    length: Annotated[float, typer.Option(help="length of the push [m]")] = 6.0,
+    seed: Annotated[int, typer.Option(help="random seed")] = 0,
+) -> None:
+    """Thesis Fig 6.1: push the walker straight with neither, left, right or both brakes
+    engaged; plot the true and the dead-reckoned paths."""
+    from experiments.report import plot_slip_push
+    from experiments.slip import BRAKE_SETTINGS, straight_push
+
+    out.mkdir(parents=True, exist_ok=True)
+    surfaces = surface or ["clean", "dusty"]
+    results = [straight_push(s, b, level, length, seed) for s in surfaces for b in BRAKE_SETTINGS]
+    table = Table("surface", "brakes", "lateral drift [m]", "heading error [deg]")
+    summary = []
+    for r in results:
+        heading = float(
+            r.end_in_start_frame(r.dead_reckoning)[2] - r.end_in_start_frame(r.truth)[2]
+        )
+        table.add_row(
+            str(r.surface), r.brakes, f"{r.lateral_drift_m:+.3f}", f"{heading * 57.2958:+.1f}"
+        )
+        summary.append(
+            {
+                "surface": r.surface,
+                "brakes": r.brakes,
+                "lateral_drift_m": r.lateral_drift_m,
+                "heading_error_rad": heading,
+            }
+        )
+    console.print(table)
+    fig = plot_slip_push(results, out / "slip_push.png")
+    (out / "slip_push.json").write_text(
+        json.dumps({"level": level, "length_m": length, "seed": seed, "results": summary}, indent=2)
+        + "\n"
+    )
+    console.print(f"files: {fig}, {out / 'slip_push.json'}", highlight=False)
+
+
 @app.command(name="list")
 def list_names() -> None:
     """List built-in courses, localizers and controllers."""

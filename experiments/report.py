@@ -85,3 +85,31 @@ def write_figures(
         fig.savefig(files["maps_png"], dpi=130, bbox_inches="tight")
         plt.close(fig)
     return files
+
+
+def plot_slip_push(results, path: Path) -> Path:
+    """True and dead-reckoned paths of the straight pushes, one panel per surface (Fig 6.1)."""
+    surfaces = list(dict.fromkeys(str(r.surface) for r in results))
+    fig, axes = plt.subplots(
+        1, len(surfaces), figsize=(5 * len(surfaces), 4), squeeze=False, sharex=True, sharey=True
+    )
+    colours = {"none": "k", "left": "tab:blue", "right": "tab:red", "both": "tab:green"}
+    for ax, surface in zip(axes[0], surfaces, strict=True):
+        for r in results:
+            if str(r.surface) != surface:
+                continue
+            ax.plot(r.truth.poses[:, 0], r.truth.poses[:, 1], color="tab:orange", lw=3, alpha=0.5)
+            ax.plot(
+                r.dead_reckoning.poses[:, 0],
+                r.dead_reckoning.poses[:, 1],
+                color=colours[r.brakes],
+                label=f"{r.brakes} braked",
+            )
+        ax.set_title(f"{surface} floor (orange: true path)", fontsize=9)
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m] (dead-reckoned sideways drift)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="lower left")
+    fig.savefig(path, dpi=130, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -25,6 +25,7 @@ class UserParams:
 
     speed_mps: preferred walking speed; lookahead_m: pure-pursuit lookahead on the route;
     speed_gain / yaw_gain: feedback from felt speed / turning [N per m/s, N·m per rad/s];
+    speed_integral_gain: how fast they push harder while slower than they want [N per m];
     max_push_n: largest total forward force; max_steer_n: largest handle-force difference;
     heading_drift_rad_per_sqrt_m: random walk of the user's sense of heading per √metre
     walked (the impairment); heading_bias_rad_per_m: a constant veer of that sense;
@@ -36,6 +37,7 @@ class UserParams:
     speed_mps: float = 0.75
     lookahead_m: float = 0.9
     speed_gain: float = 40.0
+    speed_integral_gain: float = 15.0
     yaw_gain: float = 6.0
     max_push_n: float = 60.0
     max_steer_n: float = 25.0
@@ -87,6 +89,7 @@ class RouteFollower:
         self.finished = False
         self._backoff_left_s = 0.0
         self._backoff_turn = 0.0
+        self._speed_error_integral = 0.0
 
     # -- belief -----------------------------------------------------------------------
     def _feel_motion(self, state: WalkerState, dt: float) -> None:
@@ -158,7 +161,19 @@ class RouteFollower:
             v_des, omega_des = -self.p.backoff_speed_mps, self._backoff_turn
 
         w = self.walker
-        total = w.damping * v_des + self.p.speed_gain * (v_des - state.v)
+        if self.finished or self._backoff_left_s > 0.0:
+            self._speed_error_integral = 0.0
+        else:
+            # Anti-windup: the integral alone never asks for more than the largest push.
+            limit = self.p.max_push_n / max(self.p.speed_integral_gain, 1e-9)
+            self._speed_error_integral = min(
+                max(self._speed_error_integral + (v_des - state.v) * dt, 0.0), limit
+            )
+        total = (
+            w.damping * v_des
+            + self.p.speed_gain * (v_des - state.v)
+            + self.p.speed_integral_gain * self._speed_error_integral
+        )
         total = min(max(total, -0.5 * self.p.max_push_n), self.p.max_push_n)
         yaw_torque = w.yaw_damping * omega_des + self.p.yaw_gain * (omega_des - state.omega)
         diff = yaw_torque / (w.alpha * w.half_track_m)
