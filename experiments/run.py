@@ -110,16 +110,21 @@ def replay_log(
     localizer: str = "dead-reckoning",
     mapper_config: MapperConfig | None = None,
     figures: bool = True,
+    reference_map: bool = True,
     progress: Callable[[float], None] | None = None,
 ) -> ReplayResult:
     """Run a recorded trial through a localizer and the mapper; write estimates, maps,
-    metrics against ground truth (when the log has it) and the run's config."""
+    metrics against ground truth (when the log has it) and the run's config.
+
+    reference_map: also map the same frames at the true poses (when the log has ground
+    truth), for the side-by-side figure and the reference map scores.
+    """
     trial = read_log(log_path)
     cal = trial.calibration
     world = World.from_dict(trial.metadata["world"]) if "world" in trial.metadata else None
     initial_pose = trial.metadata.get("config", {}).get("initial_pose")
     loc = create(localizer, cal, initial_pose=initial_pose)
-    pipeline = Pipeline(loc, cal, mapper_config)
+    pipeline = Pipeline(loc, cal, mapper_config, reference_map=reference_map)
     t0 = time.perf_counter()
     pipeline.run(trial.messages(), progress)
     runtime = time.perf_counter() - t0

@@ -122,6 +122,7 @@ from __future__ import annotations
 
 import heapq
 import io
+import itertools
 import json
 import math
 import os
@@ -129,21 +130,23 @@ import struct
 import threading
 import time
 import warnings
+import zlib
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, NoReturn
 
+import lz4.frame
 import numpy as np
+import zstandard
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.LaserScan_pb2 import LaserScan as PbLaserScan
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
-from mcap.records import Attachment, Channel, Chunk, Header, Metadata, Schema
+from mcap.records import Attachment, Channel, Header, Metadata, Schema
 from mcap.records import Message as McapMessage
-from mcap.stream_reader import breakup_chunk
 from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
@@ -724,6 +727,7 @@ class _Block:
 
     offset: int
     start_ns: int
+    end_ns: int
     channels: frozenset[int]
 
 
@@ -737,9 +741,55 @@ def _record_stream(body: bytes) -> ReadDataStream:
     return ReadDataStream(io.BytesIO(body))
 
 
+_CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, CRC, len(compression)
+_RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
+
+
+def _chunk_records(body: bytes, validate: bool) -> list[Any]:
+    """Records of a chunk (MCAP spec layout), parsed with struct: message records are
+    fixed-layout and by far the most numerous, so this is much faster than the generic
+    record reader, which is kept for the rare schema and channel records."""
+    _, _, usize, crc, clen = _CHUNK_HEAD.unpack_from(body, 0)
+    pos = _CHUNK_HEAD.size
+    compression = body[pos : pos + clen].decode()
+    (dlen,) = struct.unpack_from("<Q", body, pos + clen)
+    pos += clen + 8
+    data = body[pos : pos + dlen]
+    if len(data) != dlen:
+        raise ValueError("truncated chunk")
+    if compression == "zstd":
+        data = zstandard.decompress(data, usize)
+    elif compression == "lz4":
+        data = lz4.frame.decompress(data)
+    elif compression:
+        raise ValueError(f"unsupported chunk compression {compression!r}")
+    if validate and crc and zlib.crc32(data) != crc:
+        raise ValueError("chunk CRC mismatch")
+    out: list[Any] = []
+    pos, n = 0, len(data)
+    while pos < n:
+        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
+        pos += _RECORD_HEAD.size
+        end = pos + length
+        if end > n:
+            raise ValueError("truncated record in chunk")
+        if opcode == Opcode.MESSAGE:
+            channel, seq, log_ns, pub_ns = _MESSAGE_HEAD.unpack_from(data, pos)
+            out.append(
+                McapMessage(channel, log_ns, data[pos + _MESSAGE_HEAD.size : end], pub_ns, seq)
+            )
+        elif opcode == Opcode.SCHEMA:
+            out.append(Schema.read(_record_stream(data[pos:end])))
+        elif opcode == Opcode.CHANNEL:
+            out.append(Channel.read(_record_stream(data[pos:end])))
+        pos = end
+    return out
+
+
 def _messages_in(opcode: int, body: bytes, validate: bool = False) -> list[Any]:
     if opcode == Opcode.CHUNK:
-        return breakup_chunk(Chunk.read(_record_stream(body)), validate_crc=validate)
+        return _chunk_records(body, validate)
     return [McapMessage.read(_record_stream(body), len(body))]
 
 
@@ -911,7 +961,7 @@ class TrialLog:
 
     def _scan_block(self, offset: int, opcode: int, body: bytes) -> None:
         records = _messages_in(opcode, body, validate=True)
-        start, present = None, set()
+        start, end, present = None, None, set()
         for rec in records:
             if isinstance(rec, Schema):
                 self._schemas[rec.id] = rec
@@ -921,11 +971,12 @@ class TrialLog:
                 ns, c = rec.log_time, rec.channel_id
                 present.add(c)
                 start = ns if start is None else min(start, ns)
+                end = ns if end is None else max(end, ns)
                 stats = self._counts.setdefault(c, [0, ns, ns])
                 stats[0] += 1
                 stats[1], stats[2] = min(stats[1], ns), max(stats[2], ns)
         if start is not None:
-            self._blocks.append(_Block(offset, start, frozenset(present)))
+            self._blocks.append(_Block(offset, start, end, frozenset(present)))
 
     def _add_metadata(self, record: Metadata) -> None:
         if set(record.metadata) == {"json"}:
@@ -962,26 +1013,39 @@ class TrialLog:
                 self.topics[main] = reader.cls
 
     def _records(self, channels: set[int]) -> Iterator[tuple[int, int, bytes]]:
-        """(log time, channel, data) of the messages on `channels`, in log-time order."""
-        heap: list[tuple[int, int, int, Any]] = [
-            (b.start_ns, b.offset, -1, None) for b in self._blocks if b.channels & channels
-        ]
-        heapq.heapify(heap)
+        """(log time, channel, data) of the messages on `channels`, in log-time order
+        (ties in file order)."""
+        blocks = [b for b in self._blocks if b.channels & channels]
+        disjoint = all(a.end_ns <= b.start_ns for a, b in itertools.pairwise(blocks))
         with self._open() as f:
+            if disjoint:
+                # Blocks follow each other in time (a recorder writes them so): a stable
+                # sort within each block is the global order.
+                for block in blocks:
+                    recs = [r for r in self._read_block(f, block) if r.channel_id in channels]
+                    recs.sort(key=lambda r: r.log_time)
+                    for rec in recs:
+                        yield rec.log_time, rec.channel_id, rec.data
+                return
+            heap: list[tuple[int, int, int, Any]] = [(b.start_ns, b.offset, -1, b) for b in blocks]
+            heapq.heapify(heap)
             while heap:
-                ns, offset, index, rec = heapq.heappop(heap)
+                ns, offset, index, item = heapq.heappop(heap)
                 if index >= 0:
-                    yield ns, rec.channel_id, rec.data
+                    yield ns, item.channel_id, item.data
                     continue
-                try:
-                    f.seek(offset)
-                    opcode, length = struct.unpack("<BQ", f.read(9))
-                    records = _messages_in(opcode, f.read(length))
-                except Exception as e:
-                    self._fail(f"changed or unreadable while replaying (byte {offset}): {e!r}")
-                for i, rec in enumerate(records):
-                    if isinstance(rec, McapMessage) and rec.channel_id in channels:
+                for i, rec in enumerate(self._read_block(f, item)):
+                    if rec.channel_id in channels:
                         heapq.heappush(heap, (rec.log_time, offset, i, rec))
+
+    def _read_block(self, f: io.BufferedReader, block: _Block) -> list[McapMessage]:
+        try:
+            f.seek(block.offset)
+            opcode, length = struct.unpack("<BQ", f.read(9))
+            records = _messages_in(opcode, f.read(length))
+        except Exception as e:
+            self._fail(f"changed or unreadable while replaying (byte {block.offset}): {e!r}")
+        return [r for r in records if isinstance(r, McapMessage)]
 
 
 def _opcode_name(opcode: int) -> str:

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 
 def arc_increment(ds: float, dtheta: float, theta: float) -> tuple[float, float]:
     """World-frame (dx, dy) of an exact arc of length ds turning by dtheta from heading theta.
@@ -24,13 +22,17 @@ def wheel_increment(ds_left: float, ds_right: float, track: float) -> tuple[floa
     return 0.5 * (ds_left + ds_right), (ds_right - ds_left) / track
 
 
-def wheel_increment_jacobian(theta: float, ds: float, dtheta: float, track: float) -> np.ndarray:
-    """∂(dx, dy, dθ)/∂(ds_left, ds_right) for the midpoint form of the arc (noise propagation)."""
+def wheel_increment_jacobian(
+    theta: float, ds: float, dtheta: float, track: float
+) -> tuple[tuple[float, float], ...]:
+    """∂(dx, dy, dθ)/∂(ds_left, ds_right) of the midpoint form of the arc (3 rows of 2),
+    for noise propagation."""
     h = theta + 0.5 * dtheta
     c, s = math.cos(h), math.sin(h)
-    # d(ds)/dL = d(ds)/dR = 1/2; d(dθ)/dL = -1/B, d(dθ)/dR = 1/B; dx = ds cos(h), dy = ds sin(h)
-    dd = np.array([0.5, 0.5])
-    dth = np.array([-1.0 / track, 1.0 / track])
-    jx = c * dd - ds * s * 0.5 * dth
-    jy = s * dd + ds * c * 0.5 * dth
-    return np.vstack([jx, jy, dth])
+    # ds = (L + R)/2, dθ = (R − L)/B, dx = ds cos(h), dy = ds sin(h), h = θ + dθ/2
+    k = 0.5 * ds / track
+    return (
+        (0.5 * c + k * s, 0.5 * c - k * s),
+        (0.5 * s - k * c, 0.5 * s + k * c),
+        (-1.0 / track, 1.0 / track),
+    )

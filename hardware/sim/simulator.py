@@ -30,7 +30,7 @@ from hardware.sim.dynamics import Brakes, WalkerParams, WalkerState, step
 from hardware.sim.slip import Encoders, SlipModel, surface_coefficient
 from hardware.sim.tag_camera import SimTagCamera, TagCameraConfig
 from hardware.sim.user import ConstantPush, RouteFollower, UserParams
-from hardware.sim.world import World
+from hardware.sim.world import COLLISION_BAND_M, World
 
 # Walker parts in the walker frame (x forward, y left; rear-axle origin): the frame is
 # 0.56 m wide and 0.74 m long; the rear wheels stick out 6.5 cm beyond it on each side
@@ -45,6 +45,11 @@ WALKER_PARTS = (
 )
 # A contact with an obstacle counts as a new collision only after this long clear of it.
 COLLISION_REARM_S = 3.0
+# Farthest point of the walker from the rear-axle centre: bounds how far any part of it
+# can move for a given (v, φ̇).
+WALKER_REACH_M = float(max(np.hypot(*p.T).max() for _, p in WALKER_PARTS))
+# Clearance looked for around the walker after a contact-free step.
+CLEARANCE_HORIZON_M = 0.3
 
 
 @dataclass(frozen=True)
@@ -130,6 +135,8 @@ class Simulator:
             for name in ("encoder", "depth", "tag", "groundtruth")
         }
         self._last_contact: dict[str, float] = {}
+        # Distance the walker may still move before it could touch anything.
+        self._free_travel_m = 0.0
         self.last_slip = (0.0, 0.0)
 
     @property
@@ -179,12 +186,25 @@ class Simulator:
         return [(name, poly @ rot.T + off) for name, poly in WALKER_PARTS]
 
     def _collide(self, out: list[Message]) -> None:
-        contacts = self.world.contacts(self._parts_in_world())
-        if not contacts:
-            return
         s = self.state
+        # Broad phase: no part can have moved farther than |v|dt + |φ̇|dt·reach, so while
+        # the walker's clearance is not used up there is nothing to check.
+        self._free_travel_m -= (abs(s.v) + abs(s.omega) * WALKER_REACH_M) * self.dt
+        if self._free_travel_m > 0.0:
+            self.user.touching(s, None, self.dt)
+            return
+        parts = self._parts_in_world()
+        contacts = self.world.contacts(parts)
+        if not contacts:
+            self.user.touching(s, None, self.dt)
+            polys = self.world.polygon_set(*COLLISION_BAND_M)
+            clearance, _ = polys.clearances(np.array([p for _, p in parts]), CLEARANCE_HORIZON_M)
+            self._free_travel_m = min(float(clearance.min()), CLEARANCE_HORIZON_M)
+            return
         moved = np.zeros(2)
-        for c in sorted(contacts, key=lambda c: -c.depth):
+        contacts = sorted(contacts, key=lambda c: -c.depth)
+        self.user.touching(s, np.asarray(contacts[0].point, float), self.dt)
+        for c in contacts:
             # Push the walker out of the obstacle (less what earlier pushes already did
             # along this normal: two parts touching one wall are pushed once), then remove
             # the contact point's velocity into it with the least-effort (mass/inertia-

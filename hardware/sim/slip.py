@@ -56,19 +56,19 @@ class SlipModel:
         self.rng = rng
         self.sigma = variability
         self.tau = correlation_time_s
-        self._log_factor = np.zeros(2)
+        self._log_factor = [0.0, 0.0]
 
     def step(self, dt: float, brake_forces: tuple[float, float]) -> tuple[float, float]:
         """Advance the random factor by dt and return the slip ratios (left, right)."""
         a = math.exp(-dt / self.tau)
-        noise = self.rng.standard_normal(2) * self.sigma * math.sqrt(1.0 - a * a)
-        self._log_factor = a * self._log_factor + noise
-        factor = np.exp(self._log_factor - 0.5 * self.sigma**2)
-        s = [
-            min(max(self.k * abs(f) / self.max_force * float(m), 0.0), 0.95)
-            for f, m in zip(brake_forces, factor, strict=True)
-        ]
-        return s[0], s[1]
+        scale = self.sigma * math.sqrt(1.0 - a * a)
+        noise = self.rng.standard_normal(2)
+        out = []
+        for i in (0, 1):
+            self._log_factor[i] = a * self._log_factor[i] + scale * float(noise[i])
+            factor = math.exp(self._log_factor[i] - 0.5 * self.sigma**2)
+            out.append(min(max(self.k * abs(brake_forces[i]) / self.max_force * factor, 0.0), 0.95))
+        return out[0], out[1]
 
 
 class Encoders:

@@ -31,7 +31,8 @@ class UserParams:
     walked (the impairment); heading_bias_rad_per_m: a constant veer of that sense;
     distance_scale_error: relative error of their sense of distance walked;
     backoff_s / backoff_speed_mps / backoff_turn_rad_s: after a collision, how long and how
-    fast they pull the walker back, swinging its front away from what they touched.
+    fast they pull the walker back, swinging its front away from what they touched;
+    stuck_s: how long they push against something that does not give before stepping back.
     """
 
     speed_mps: float = 0.75
@@ -48,6 +49,12 @@ class UserParams:
     backoff_s: float = 1.0
     backoff_speed_mps: float = 0.25
     backoff_turn_rad_s: float = 0.4
+    stuck_s: float = 1.0
+
+
+ROUTE_STEP_M = 0.02
+SEARCH_BEHIND = round(0.5 / ROUTE_STEP_M)
+SEARCH_AHEAD = round(2.0 / ROUTE_STEP_M)
 
 
 class ConstantPush:
@@ -61,6 +68,9 @@ class ConstantPush:
         return self.left_n, self.right_n
 
     def on_collision(self, state: WalkerState, point: np.ndarray) -> None:
+        pass
+
+    def touching(self, state: WalkerState, point: np.ndarray | None, dt: float) -> None:
         pass
 
 
@@ -80,16 +90,27 @@ class RouteFollower:
             raise ValueError(f"route must be an (N>=2, 2) array of waypoints, got {route.shape}")
         self.route = route
         seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
-        self.arclen = np.concatenate([[0.0], np.cumsum(seg)])
+        arclen = np.concatenate([[0.0], np.cumsum(seg)])
+        self.length_m = float(arclen[-1])
+        # The route resampled every ROUTE_STEP_M, so progress is an index into it.
+        s = np.arange(0.0, self.length_m + ROUTE_STEP_M, ROUTE_STEP_M)
+        self._dense = np.column_stack(
+            [np.interp(s, arclen, route[:, 0]), np.interp(s, arclen, route[:, 1])]
+        )
         self.walker = walker
         self.p = params
         self.rng = rng
         self.belief = np.array([start.x, start.y, start.phi])
-        self.progress_m = 0.0
+        self._progress = 0  # index into the dense route
         self.finished = False
         self._backoff_left_s = 0.0
         self._backoff_turn = 0.0
         self._speed_error_integral = 0.0
+        self._touching_s = 0.0
+
+    @property
+    def progress_m(self) -> float:
+        return self._progress * ROUTE_STEP_M
 
     # -- belief -----------------------------------------------------------------------
     def _feel_motion(self, state: WalkerState, dt: float) -> None:
@@ -100,8 +121,11 @@ class RouteFollower:
             dphi += (
                 self.p.heading_drift_rad_per_sqrt_m * math.sqrt(walked) * self.rng.standard_normal()
             )
-        th = self.belief[2] + 0.5 * dphi
-        self.belief += (ds * math.cos(th), ds * math.sin(th), dphi)
+        b = self.belief
+        th = b[2] + 0.5 * dphi
+        b[0] += ds * math.cos(th)
+        b[1] += ds * math.sin(th)
+        b[2] += dphi
 
     def on_collision(self, state: WalkerState, point: np.ndarray) -> None:
         """Felt a contact at `point` (world): step back, swinging the front away from it."""
@@ -112,42 +136,40 @@ class RouteFollower:
         )
         # Backing up with φ̇ < 0 swings the front to the right: away from a contact on the left.
         self._backoff_turn = -math.copysign(self.p.backoff_turn_rad_s, lateral)
+        self._touching_s = 0.0
+
+    def touching(self, state: WalkerState, point: np.ndarray | None, dt: float) -> None:
+        """Contact at `point` this step (None: no contact). Pushing against something that
+        does not give for `stuck_s` makes the user step back again, as a collision does."""
+        if point is None or self._backoff_left_s > 0.0:
+            self._touching_s = 0.0
+            return
+        self._touching_s += dt
+        if self._touching_s >= self.p.stuck_s:
+            self.on_collision(state, point)
 
     # -- route ------------------------------------------------------------------------
-    def _point_at(self, s: float) -> np.ndarray:
-        return np.array(
-            [
-                np.interp(s, self.arclen, self.route[:, 0]),
-                np.interp(s, self.arclen, self.route[:, 1]),
-            ]
-        )
-
     def _update_progress(self) -> None:
         # Closest route point to the belief, searched only a little behind and ahead so
         # the user never skips a loop of a route that passes near itself.
-        lo, hi = self.progress_m - 0.5, self.progress_m + 2.0
-        s = np.linspace(max(lo, 0.0), min(hi, self.arclen[-1]), 60)
-        pts = np.column_stack(
-            [
-                np.interp(s, self.arclen, self.route[:, 0]),
-                np.interp(s, self.arclen, self.route[:, 1]),
-            ]
-        )
-        d = np.hypot(pts[:, 0] - self.belief[0], pts[:, 1] - self.belief[1])
-        self.progress_m = max(self.progress_m, float(s[int(np.argmin(d))]))
+        lo = max(self._progress - SEARCH_BEHIND, 0)
+        window = self._dense[lo : self._progress + SEARCH_AHEAD]
+        d2 = (window[:, 0] - self.belief[0]) ** 2 + (window[:, 1] - self.belief[1]) ** 2
+        self._progress = max(self._progress, lo + int(np.argmin(d2)))
 
     # -- forces -----------------------------------------------------------------------
     def forces(self, state: WalkerState, dt: float) -> tuple[float, float]:
         self._feel_motion(state, dt)
         self._update_progress()
-        remaining = self.arclen[-1] - self.progress_m
+        remaining = self.length_m - self.progress_m
         end = self.route[-1]
         if (
             remaining < self.p.finish_radius_m
             and math.dist(self.belief[:2], end) < self.p.finish_radius_m
         ):
             self.finished = True
-        target = self._point_at(self.progress_m + self.p.lookahead_m)
+        ahead = self._progress + round(self.p.lookahead_m / ROUTE_STEP_M)
+        target = self._dense[min(ahead, len(self._dense) - 1)]
         bearing = math.atan2(target[1] - self.belief[1], target[0] - self.belief[0])
         err = math.remainder(bearing - self.belief[2], 2.0 * math.pi)
 

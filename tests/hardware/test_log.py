@@ -336,6 +336,23 @@ def test_messages_come_out_in_log_time_order(tmp_path: Path) -> None:
     assert [m.left for m in enc] == [i for i in order if i % 3]
 
 
+def test_order_within_chunks_that_follow_each_other_in_time(tmp_path: Path) -> None:
+    """Chunks disjoint in time, messages shuffled (with ties) inside each chunk."""
+    rng = np.random.default_rng(1)
+    path = tmp_path / "blocks.mcap"
+    written = []
+    with LogWriter(path, WalkerCalibration(), background_flush=False) as w:
+        for block in range(8):
+            times = block + rng.integers(0, 10, 40) / 10.0  # [block, block + 0.9], ties
+            for i, t in enumerate(times):
+                msg = EncoderTicks(float(t), block * 100 + i, 0)
+                w.write(msg)
+                written.append(msg)
+            w.flush()
+    expected = sorted(written, key=lambda m: m.t)  # stable: ties in write order
+    assert [m.left for m in read_all(path)] == [m.left for m in expected]
+
+
 def test_writers_on_several_threads(tmp_path: Path) -> None:
     path = tmp_path / "threads.mcap"
     with LogWriter(path, WalkerCalibration()) as w:

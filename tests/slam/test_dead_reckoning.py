@@ -91,3 +91,55 @@ def test_tum_round_trip(tmp_path):
     tr.write_tum(tmp_path / "a.tum")
     back = Trajectory.read_tum(tmp_path / "a.tum")
     assert np.allclose(back.t, t) and np.allclose(back.poses, poses, atol=1e-8)
+
+
+def test_wheel_increment_jacobian_matches_finite_differences():
+    from slam.motion import wheel_increment, wheel_increment_jacobian
+
+    def midpoint(theta, ds_l, ds_r, track):
+        ds, dth = wheel_increment(ds_l, ds_r, track)
+        h = theta + 0.5 * dth
+        return np.array([ds * math.cos(h), ds * math.sin(h), dth])
+
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        theta, left, r = rng.uniform(-3, 3), rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2)
+        ds, dth = wheel_increment(left, r, 0.64)
+        j = np.array(wheel_increment_jacobian(theta, ds, dth, 0.64))
+        eps = 1e-7
+        num = np.column_stack(
+            [
+                (midpoint(theta, left + eps, r, 0.64) - midpoint(theta, left - eps, r, 0.64))
+                / (2 * eps),
+                (midpoint(theta, left, r + eps, 0.64) - midpoint(theta, left, r - eps, 0.64))
+                / (2 * eps),
+            ]
+        )
+        assert np.allclose(j, num, atol=1e-7)
+
+
+def test_covariance_propagation_equals_matrix_form():
+    """P' = F P Fᵀ + G Q Gᵀ, computed independently with matrices."""
+    from slam.motion import arc_increment, wheel_increment, wheel_increment_jacobian
+
+    cfg = DeadReckoningConfig(initial_pose=(0.0, 0.0, 0.3))
+    dr = create("dead-reckoning", CAL, cfg)
+    rng = np.random.default_rng(8)
+    left = right = 0
+    pose, cov = np.array([0.0, 0.0, 0.3]), np.zeros((3, 3))
+    dr.process(EncoderTicks(0.0, 0, 0))
+    for k in range(1, 200):
+        dl, dr_ = rng.integers(-3, 12), rng.integers(-3, 12)
+        left, right = left + dl, right + dr_
+        dr.process(EncoderTicks(0.01 * k, left, right))
+        ds_l, ds_r = dl * CAL.metres_per_count, dr_ * CAL.metres_per_count
+        ds, dth = wheel_increment(ds_l, ds_r, CAL.track_m)
+        g = np.array(wheel_increment_jacobian(pose[2], ds, dth, CAL.track_m))
+        dx, dy = arc_increment(ds, dth, pose[2])
+        f = np.array([[1, 0, -dy], [0, 1, dx], [0, 0, 1.0]])
+        q = cfg.wheel_noise_m * np.diag([abs(ds_l), abs(ds_r)])
+        cov = f @ cov @ f.T + g @ q @ g.T
+        pose = pose + np.array([dx, dy, dth])
+    est = dr.estimate()
+    assert np.allclose(est.covariance, cov, rtol=1e-9, atol=1e-15)
+    assert np.allclose(est.pose[:2], pose[:2])
