@@ -47,6 +47,17 @@ def friendly(fn: Callable) -> Callable:
     return wrapper
 
 
+def parse_size(text: str) -> tuple[int, int]:
+    """'WxH' → (W, H), within the Kinect's 640×480."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"image size must look like 160x120, got '{text}'") from None
+    if not (8 <= w <= 640 and 6 <= h <= 480):
+        raise ValueError(f"image size {w}x{h} is outside 8x6 .. 640x480")
+    return w, h
+
+
 @contextmanager
 def progress_bar(label: str, total: float | None):
     with Progress(
@@ -116,14 +127,24 @@ def simulate(
     ] = "dusty",
     seed: Annotated[int, typer.Option(help="random seed of the run")] = 0,
     duration: Annotated[float, typer.Option(help="longest simulated time [s]")] = 300.0,
+    depth_size: Annotated[
+        str, typer.Option(help="depth image size WxH, up to 640x480")
+    ] = "160x120",
 ) -> None:
     """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log."""
+    from dataclasses import replace
+
     from experiments.run import simulate_trial
+    from hardware.sim.simulator import SimConfig
+
+    width, height = parse_size(depth_size)
+    sim_config = replace(SimConfig(), depth_width=width, depth_height=height)
 
     with progress_bar(f"simulating {course}", duration) as update:
         res = simulate_trial(
             course,
             output,
+            sim_config=sim_config,
             controller=controller,
             localizer=localizer,
             surface=surface,
