@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import json
+import warnings
 from collections.abc import Callable
 from contextlib import contextmanager
 from pathlib import Path
@@ -32,13 +33,21 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     return (LogError, UnknownNameError, FileNotFoundError, ValueError)
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings (e.g. a recovered log) as one line, without Python's source context."""
+    text = str(message).splitlines()[0]
+    err_console.print(f"[bold yellow]warning:[/] {text}", highlight=False, soft_wrap=True)
+
+
 def friendly(fn: Callable) -> Callable:
     """Turn bad input into `error: …` on one line and exit code 2, never a traceback."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
-            return fn(*args, **kwargs)
+            with warnings.catch_warnings():
+                warnings.showwarning = _show_warning
+                return fn(*args, **kwargs)
         except _user_errors() as exc:
             msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             err_console.print(f"[bold red]error:[/] {msg}", highlight=False, soft_wrap=True)
@@ -168,16 +177,31 @@ def replay(
     log: Annotated[Path, typer.Argument(help="trial log (.mcap)")],
     localizer: Annotated[str, typer.Option(help="localizer to run")] = "dead-reckoning",
     out: Annotated[Path, typer.Option(help="output folder")] = Path("out/replay"),
+    map_model: Annotated[
+        str, typer.Option(help="log-odds, or view-count (the thesis's >50 % of views)")
+    ] = "log-odds",
+    resolution: Annotated[float, typer.Option(help="map cell size [m]")] = 0.05,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics."""
     from experiments.run import replay_log
     from hardware.log import read_log
+    from mapping.grid import GridConfig, MapModel
+    from mapping.mapper import MapperConfig
 
+    if map_model not in [m.value for m in MapModel]:
+        raise ValueError(f"unknown map model '{map_model}'; valid: log-odds, view-count")
+    mapper_config = MapperConfig(grid=GridConfig(resolution_m=resolution, model=map_model))
     trial = read_log(log)  # fail fast on a bad file, before the progress bar
     t0, t1 = trial.time_range if trial.message_count else (0.0, 0.0)
     with progress_bar(f"replaying with {localizer}", t1 - t0) as update:
-        res = replay_log(log, out, localizer=localizer, progress=lambda t: update(t - t0))
+        res = replay_log(
+            trial,
+            out,
+            localizer=localizer,
+            mapper_config=mapper_config,
+            progress=lambda t: update(t - t0),
+        )
     _print_metrics(res.metrics, res.files)
 
 

@@ -17,7 +17,7 @@ from typing import Any
 from control.base import CONTROLLERS
 from experiments import metrics as M
 from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
-from hardware.log import LogWriter, read_log
+from hardware.log import LogWriter, TrialLog, read_log
 from hardware.sim.simulator import SimConfig, Simulator
 from hardware.sim.world import World, load_world
 from mapping.export import save_map_server, save_png
@@ -104,7 +104,7 @@ class ReplayResult:
 
 
 def replay_log(
-    log_path: str | Path,
+    log: str | Path | TrialLog,
     out_dir: str | Path,
     *,
     localizer: str = "dead-reckoning",
@@ -113,13 +113,15 @@ def replay_log(
     reference_map: bool = True,
     progress: Callable[[float], None] | None = None,
 ) -> ReplayResult:
-    """Run a recorded trial through a localizer and the mapper; write estimates, maps,
-    metrics against ground truth (when the log has it) and the run's config.
+    """Run a recorded trial (a path or an opened log) through a localizer and the mapper;
+    write estimates, maps, metrics against ground truth (when the log has it) and the
+    run's config.
 
     reference_map: also map the same frames at the true poses (when the log has ground
     truth), for the side-by-side figure and the reference map scores.
     """
-    trial = read_log(log_path)
+    trial = log if isinstance(log, TrialLog) else read_log(log)
+    log_path = trial.path
     cal = trial.calibration
     world = World.from_dict(trial.metadata["world"]) if "world" in trial.metadata else None
     initial_pose = trial.metadata.get("config", {}).get("initial_pose")

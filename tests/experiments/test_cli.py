@@ -66,14 +66,20 @@ def test_unknown_course_lists_valid_names(tmp_path):
 
 def test_truncated_log_replays_what_was_recovered(tmp_path):
     log = tmp_path / "t.mcap"
-    _tiny_log(log)
+    with LogWriter(log, WalkerCalibration(), background_flush=False) as w:
+        for k in range(500):  # 10 s of log time: a chunk every 0.5 s
+            w.write(EncoderTicks(0.02 * k, 3 * k, 3 * k))
     data = log.read_bytes()
-    log.write_bytes(data[: len(data) - 200])  # cut the summary and footer
+    log.write_bytes(data[: int(len(data) * 0.6)])  # cut inside the data section
     res = walkerslam("replay", log, "--out", tmp_path / "o")
     assert res.returncode == 0, res.stderr
     assert "Traceback" not in res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("warning: t.mcap"), res.stderr
+    recovered = int(lines[0].split("recovered ")[1].split()[0])
     metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
-    assert metrics["messages"]["EncoderTicks"] == 50
+    assert metrics["messages"]["EncoderTicks"] == recovered
+    assert 200 <= recovered < 500
 
 
 @pytest.mark.slow
