@@ -1,0 +1,113 @@
+"""Landmark measurement models: range-bearing and planar tag pose, with their Jacobians.
+
+A landmark is a point l = (u, v) in the world (a tag's centre, a barcode, a tree). From
+the walker pose s = (x, y, θ):
+
+    range-bearing  z = h(s, l) = [√((u−x)² + (v−y)²), atan2(v−y, u−x) − θ]    (thesis App. A)
+    tag pose       z = (tag x, tag y, tag yaw) in the walker frame (full tag observation)
+
+Tag detections (camera-frame 4×4 poses) become walker-frame observations through the
+camera mount. All functions are vectorised over leading dimensions (particles, landmarks).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hardware.calibration import WalkerCalibration
+from hardware.messages import RangeBearing, TagDetections
+from slam.geometry import wrap_angle
+
+
+def range_bearing(pose: np.ndarray, landmark: np.ndarray) -> np.ndarray:
+    """h(s, l) → (..., 2) range and bearing; broadcasts over leading dimensions."""
+    dx = landmark[..., 0] - pose[..., 0]
+    dy = landmark[..., 1] - pose[..., 1]
+    return np.stack([np.hypot(dx, dy), wrap_angle(np.arctan2(dy, dx) - pose[..., 2])], axis=-1)
+
+
+def range_bearing_jacobians(
+    pose: np.ndarray, landmark: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(∂h/∂s (..., 2, 3), ∂h/∂l (..., 2, 2)) of `range_bearing` (G_s and G_θ of App. A)."""
+    dx = landmark[..., 0] - pose[..., 0]
+    dy = landmark[..., 1] - pose[..., 1]
+    q = np.maximum(dx * dx + dy * dy, 1e-12)
+    r = np.sqrt(q)
+    zero = np.zeros_like(dx)
+    g_l = np.stack(
+        [np.stack([dx / r, dy / r], axis=-1), np.stack([-dy / q, dx / q], axis=-1)], axis=-2
+    )
+    g_s = np.concatenate([-g_l, np.stack([zero, -np.ones_like(dx)], axis=-1)[..., None]], axis=-1)
+    return g_s, g_l
+
+
+def landmark_from_range_bearing(pose: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Inverse model: the landmark position (..., 2) that explains z from pose."""
+    a = pose[..., 2] + z[..., 1]
+    return np.stack(
+        [pose[..., 0] + z[..., 0] * np.cos(a), pose[..., 1] + z[..., 0] * np.sin(a)], axis=-1
+    )
+
+
+def landmark_from_range_bearing_jacobians(
+    pose: np.ndarray, z: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(∂l/∂s (..., 2, 3), ∂l/∂z (..., 2, 2)) of the inverse model (landmark initialisation)."""
+    a = pose[..., 2] + z[..., 1]
+    c, s = np.cos(a), np.sin(a)
+    r = z[..., 0]
+    one, zero = np.ones_like(r), np.zeros_like(r)
+    j_s = np.stack(
+        [np.stack([one, zero, -r * s], axis=-1), np.stack([zero, one, r * c], axis=-1)], axis=-2
+    )
+    j_z = np.stack([np.stack([c, -r * s], axis=-1), np.stack([s, r * c], axis=-1)], axis=-2)
+    return j_s, j_z
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkObservation:
+    """Observations of landmarks with known IDs at one time, in the walker frame.
+
+    z: (N, 2) range [m] and bearing [rad]; yaw: (N,) the landmark's own yaw in the walker
+    frame when the sensor measures it (a tag's pose), NaN otherwise.
+    """
+
+    t: float
+    ids: np.ndarray
+    z: np.ndarray
+    yaw: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+def tag_observations(msg: TagDetections, calibration: WalkerCalibration) -> LandmarkObservation:
+    """Tag detections → range, bearing and yaw of each tag centre in the walker frame.
+
+    The tag's yaw is the heading of its outward normal (−z of the tag frame), projected
+    on the floor plane, so it compares directly with `TagPose.yaw` of the world.
+    """
+    walker_T_optical = calibration.tag_mount.walker_T_optical()
+    ids, zs, yaws = [], [], []
+    for d in msg.detections:
+        walker_T_tag = walker_T_optical @ np.asarray(d.camera_T_tag, dtype=float)
+        x, y = walker_T_tag[0, 3], walker_T_tag[1, 3]
+        normal = -walker_T_tag[:3, 2]
+        ids.append(d.tag_id)
+        zs.append((np.hypot(x, y), np.arctan2(y, x)))
+        yaws.append(np.arctan2(normal[1], normal[0]))
+    return LandmarkObservation(
+        msg.t, np.array(ids, dtype=int), np.array(zs, dtype=float).reshape(-1, 2), np.array(yaws)
+    )
+
+
+def range_bearing_observation(msg: RangeBearing) -> LandmarkObservation:
+    return LandmarkObservation(
+        msg.t,
+        np.array([msg.landmark_id]),
+        np.array([[msg.range_m, wrap_angle(msg.bearing_rad)]]),
+        np.array([np.nan]),
+    )

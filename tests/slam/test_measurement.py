@@ -1,0 +1,96 @@
+"""Measurement models against numerical Jacobians, inverses and the simulated tag camera."""
+
+import math
+
+import numpy as np
+import pytest
+
+from hardware.messages import TagDetections
+from hardware.sim.simulator import SimConfig
+from hardware.sim.tag_camera import SimTagCamera, TagCameraConfig
+from hardware.sim.world import load_world
+from slam.measurement import (
+    landmark_from_range_bearing,
+    landmark_from_range_bearing_jacobians,
+    range_bearing,
+    range_bearing_jacobians,
+    tag_observations,
+)
+
+
+def numerical(f, x, eps=1e-7):
+    cols = []
+    for i in range(len(x)):
+        d = np.zeros_like(x)
+        d[i] = eps
+        diff = f(x + d) - f(x - d)
+        if diff.shape[-1] == 2:  # wrap the bearing difference
+            diff[..., 1] = (diff[..., 1] + np.pi) % (2 * np.pi) - np.pi
+        cols.append(diff / (2 * eps))
+    return np.stack(cols, axis=-1)
+
+
+@pytest.fixture
+def cases():
+    rng = np.random.default_rng(11)
+    poses = np.column_stack(
+        [rng.uniform(-5, 5, 30), rng.uniform(-5, 5, 30), rng.uniform(-3, 3, 30)]
+    )
+    lms = rng.uniform(-6, 6, (30, 2))
+    return poses, lms
+
+
+def test_range_bearing_jacobians_match_numerical(cases):
+    for pose, lm in zip(*cases, strict=True):
+        g_s, g_l = range_bearing_jacobians(pose, lm)
+        assert np.allclose(g_s, numerical(lambda p: range_bearing(p, lm), pose), atol=1e-6)
+        assert np.allclose(g_l, numerical(lambda m: range_bearing(pose, m), lm), atol=1e-6)
+
+
+def test_range_bearing_vectorised_equals_loop(cases):
+    poses, lms = cases
+    g_s, g_l = range_bearing_jacobians(poses, lms)
+    for i in range(len(poses)):
+        a, b = range_bearing_jacobians(poses[i], lms[i])
+        assert np.allclose(g_s[i], a) and np.allclose(g_l[i], b)
+    assert np.allclose(range_bearing(poses, lms)[3], range_bearing(poses[3], lms[3]))
+
+
+def test_inverse_model_round_trip_and_jacobians(cases):
+    for pose, lm in zip(*cases, strict=True):
+        z = range_bearing(pose, lm)
+        assert np.allclose(landmark_from_range_bearing(pose, z), lm)
+        j_s, j_z = landmark_from_range_bearing_jacobians(pose, z)
+        assert np.allclose(
+            j_s, numerical(lambda p: landmark_from_range_bearing(p, z), pose), atol=1e-6
+        )
+        num_z = numerical(lambda zz: landmark_from_range_bearing(pose, zz), z)
+        assert np.allclose(j_z, num_z, atol=1e-6)
+
+
+def test_known_values():
+    z = range_bearing(np.array([1.0, 1.0, math.pi / 2]), np.array([1.0, 3.0]))
+    assert z == pytest.approx([2.0, 0.0])
+    z = range_bearing(np.array([0.0, 0.0, 0.0]), np.array([-1.0, -1e-12]))
+    assert abs(z[1]) == pytest.approx(math.pi)
+
+
+def test_tag_observations_agree_with_the_world():
+    """Noise-free simulated detections, turned into walker-frame observations and placed at
+    the true pose, land on the world's tag positions and normals."""
+    world = load_world("thesis-course")
+    cal = SimConfig().calibration()
+    cam = SimTagCamera(world, cal, TagCameraConfig(pixel_noise_px=0.0), np.random.default_rng(0))
+    seen = 0
+    for i in range(0, len(world.route) - 1, 7):
+        p, q = world.route[i], world.route[i + 1]
+        pose = np.array([p[0], p[1], math.atan2(q[1] - p[1], q[0] - p[0])])
+        obs = tag_observations(TagDetections(0.0, tuple(cam.detect(pose))), cal)
+        for tag_id, z, yaw in zip(obs.ids, obs.z, obs.yaw, strict=True):
+            tag = world.tag(int(tag_id))
+            lm = landmark_from_range_bearing(pose, z)
+            # tag centres are 0.35 m high; the planar position ignores height
+            assert np.allclose(lm, [tag.x, tag.y], atol=0.01)
+            assert abs(math.remainder(pose[2] + yaw - tag.yaw, 2 * math.pi)) < 0.02
+            seen += 1
+    assert seen > 20
