@@ -43,8 +43,10 @@ def cases():
 def test_range_bearing_jacobians_match_numerical(cases):
     for pose, lm in zip(*cases, strict=True):
         g_s, g_l = range_bearing_jacobians(pose, lm)
-        assert np.allclose(g_s, numerical(lambda p: range_bearing(p, lm), pose), atol=1e-6)
-        assert np.allclose(g_l, numerical(lambda m: range_bearing(pose, m), lm), atol=1e-6)
+        assert np.allclose(g_s, numerical(lambda p, lm=lm: range_bearing(p, lm), pose), atol=1e-6)
+        assert np.allclose(
+            g_l, numerical(lambda m, pose=pose: range_bearing(pose, m), lm), atol=1e-6
+        )
 
 
 def test_range_bearing_vectorised_equals_loop(cases):
@@ -62,9 +64,9 @@ def test_inverse_model_round_trip_and_jacobians(cases):
         assert np.allclose(landmark_from_range_bearing(pose, z), lm)
         j_s, j_z = landmark_from_range_bearing_jacobians(pose, z)
         assert np.allclose(
-            j_s, numerical(lambda p: landmark_from_range_bearing(p, z), pose), atol=1e-6
+            j_s, numerical(lambda p, z=z: landmark_from_range_bearing(p, z), pose), atol=1e-6
         )
-        num_z = numerical(lambda zz: landmark_from_range_bearing(pose, zz), z)
+        num_z = numerical(lambda zz, pose=pose: landmark_from_range_bearing(pose, zz), z)
         assert np.allclose(j_z, num_z, atol=1e-6)
 
 
