@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
-from hardware.messages import EncoderTicks, Message, VelocityOdometry
+from hardware.messages import Message
 from slam.base import Localizer, PoseEstimate, register
-from slam.motion import arc_increment, wheel_increment, wheel_increment_jacobian
+from slam.motion import MotionNoise, OdometryModel, arc_increment
 from slam.trajectory import Trajectory
 
 
@@ -18,83 +18,62 @@ from slam.trajectory import Trajectory
 class DeadReckoningConfig:
     """Dead-reckoning settings.
 
-    initial_pose: (x, y, θ) at the first message.
-    wheel_noise_m: per-wheel distance noise as a random walk, σ² = wheel_noise_m·|distance
-        rolled| [m²/m]; 0.0025 gives σ = 5 cm after 1 m (the thesis's 5 % encoder error).
-    velocity_noise: for velocity odometry, σ_v = velocity_noise·|v| and
-        σ_ω = velocity_noise·|ω| + 0.01.
+    initial_pose: (x, y, θ) at the first message (defines the map frame).
+    noise: odometry noise for the covariance (see slam.motion.MotionNoise).
     """
 
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    wheel_noise_m: float = 0.0025
-    velocity_noise: float = 0.1
+    noise: MotionNoise = field(default_factory=MotionNoise)
 
 
 class DeadReckoning(Localizer):
     def __init__(self, config: DeadReckoningConfig, calibration: WalkerCalibration) -> None:
         self.config = config
         self.calibration = calibration
+        self.odometry = OdometryModel(calibration, config.noise)
         x0, y0, th0 = (float(v) for v in config.initial_pose)
         self._pose = (x0, y0, th0)
         self._cov = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
         self._t: float | None = None
-        self._last_ticks: tuple[int, int] | None = None
-        self._last_velocity: VelocityOdometry | None = None
+        self._started = False
         self._times: list[float] = []
-        self._poses: list[np.ndarray] = []
+        self._poses: list[tuple[float, float, float]] = []
 
-    # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
-        if isinstance(msg, EncoderTicks):
-            self._on_ticks(msg)
-        elif isinstance(msg, VelocityOdometry):
-            self._on_velocity(msg)
-
-    def _on_ticks(self, msg: EncoderTicks) -> None:
-        if self._last_ticks is None:
-            self._last_ticks = (msg.left, msg.right)
+        inc = self.odometry.increment(msg)
+        if inc is not None:
+            self._advance(inc.ds, inc.dtheta, inc.cov)
             self._record(msg.t)
-            return
-        m = self.calibration.metres_per_count
-        ds_l = (msg.left - self._last_ticks[0]) * m
-        ds_r = (msg.right - self._last_ticks[1]) * m
-        self._last_ticks = (msg.left, msg.right)
-        ds, dth = wheel_increment(ds_l, ds_r, self.calibration.track_m)
-        k = self.config.wheel_noise_m
-        g = wheel_increment_jacobian(self._pose[2], ds, dth, self.calibration.track_m)
-        self._advance(ds, dth, g, (k * abs(ds_l), k * abs(ds_r)))
-        self._record(msg.t)
-
-    def _on_velocity(self, msg: VelocityOdometry) -> None:
-        prev = self._last_velocity
-        self._last_velocity = msg
-        if prev is None:
+        elif not self._started and self.odometry.has_odometry:
+            self._started = True
             self._record(msg.t)
-            return
-        dt = msg.t - prev.t
-        if dt <= 0:
-            return
-        ds, dth = prev.v * dt, prev.omega * dt
-        k = self.config.velocity_noise
-        sv, sw = k * abs(prev.v) * dt, (k * abs(prev.omega) + 0.01) * dt
-        h = self._pose[2] + 0.5 * dth
-        g = ((math.cos(h), 0.0), (math.sin(h), 0.0), (0.0, 1.0))
-        self._advance(ds, dth, g, (sv * sv, sw * sw))
-        self._record(msg.t)
 
-    def _advance(self, ds: float, dth: float, g, q: tuple[float, float]) -> None:
-        """Pose += arc; P = F P Fᵀ + G diag(q) Gᵀ with F = ∂pose'/∂pose (closed form on
-        floats: this runs for every encoder message)."""
+    def _advance(self, ds: float, dth: float, q: np.ndarray) -> None:
+        """Pose += exact arc; P = F P Fᵀ + G Q Gᵀ, in closed form on floats (this runs for
+        every odometry message): F = [[1, 0, a], [0, 1, b], [0, 0, 1]], G = ∂pose'/∂(ds, dθ)."""
         x, y, th = self._pose
         dx, dy = arc_increment(ds, dth, th)
         (p00, p01, p02), (_, p11, p12), (_, _, p22) = self._cov
-        a, b = -dy, dx  # F = [[1, 0, a], [0, 1, b], [0, 0, 1]]
+        a, b = -dy, dx
         n00 = p00 + 2 * a * p02 + a * a * p22
         n01 = p01 + a * p12 + b * p02 + a * b * p22
         n02 = p02 + a * p22
         n11 = p11 + 2 * b * p12 + b * b * p22
         n12 = p12 + b * p22
-        gq = [[g[i][k] * q[k] for k in (0, 1)] for i in range(3)]
+        # G for the exact arc, written out (see slam.motion.increment_jacobians)
+        half = 0.5 * dth
+        s = math.sin(half) / half if abs(half) > 1e-4 else 1.0 - half * half / 6.0
+        sp = (half * math.cos(half) - math.sin(half)) / half**2 if abs(half) > 1e-4 else -half / 3.0
+        chord, dchord = ds * s, 0.5 * ds * sp
+        h = th + half
+        c, sn = math.cos(h), math.sin(h)
+        g = (
+            (s * c, dchord * c - 0.5 * chord * sn),
+            (s * sn, dchord * sn + 0.5 * chord * c),
+            (0.0, 1.0),
+        )
+        q00, q01, q11 = float(q[0, 0]), float(q[0, 1]), float(q[1, 1])
+        gq = [(r[0] * q00 + r[1] * q01, r[0] * q01 + r[1] * q11) for r in g]
         add = [[gq[i][0] * g[j][0] + gq[i][1] * g[j][1] for j in range(3)] for i in range(3)]
         self._cov = (
             (n00 + add[0][0], n01 + add[0][1], n02 + add[0][2]),
@@ -113,7 +92,6 @@ class DeadReckoning(Localizer):
         self._times.append(t)
         self._poses.append(self._pose)
 
-    # -- outputs ----------------------------------------------------------------------
     def estimate(self) -> PoseEstimate:
         t = self._t if self._t is not None else float("nan")
         return PoseEstimate(t, np.array(self._pose), np.array(self._cov))

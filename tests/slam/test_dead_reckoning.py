@@ -93,53 +93,78 @@ def test_tum_round_trip(tmp_path):
     assert np.allclose(back.t, t) and np.allclose(back.poses, poses, atol=1e-8)
 
 
-def test_wheel_increment_jacobian_matches_finite_differences():
-    from slam.motion import wheel_increment, wheel_increment_jacobian
-
-    def midpoint(theta, ds_l, ds_r, track):
-        ds, dth = wheel_increment(ds_l, ds_r, track)
-        h = theta + 0.5 * dth
-        return np.array([ds * math.cos(h), ds * math.sin(h), dth])
+def test_increment_jacobians_match_finite_differences():
+    from slam.motion import apply_increment, increment_jacobians
 
     rng = np.random.default_rng(7)
-    for _ in range(20):
-        theta, left, r = rng.uniform(-3, 3), rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2)
-        ds, dth = wheel_increment(left, r, 0.64)
-        j = np.array(wheel_increment_jacobian(theta, ds, dth, 0.64))
-        eps = 1e-7
-        num = np.column_stack(
-            [
-                (midpoint(theta, left + eps, r, 0.64) - midpoint(theta, left - eps, r, 0.64))
-                / (2 * eps),
-                (midpoint(theta, left, r + eps, 0.64) - midpoint(theta, left, r - eps, 0.64))
-                / (2 * eps),
-            ]
-        )
-        assert np.allclose(j, num, atol=1e-7)
+    for _ in range(30):
+        pose = np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(-3, 3)])
+        u = np.array([rng.uniform(-0.3, 0.3), rng.choice([0.0, 1e-6, rng.uniform(-1, 1)])])
+        f, g = increment_jacobians(pose[2], *u)
+
+        def num(fun, x, eps=1e-6):
+            cols = []
+            for i in range(len(x)):
+                d = np.zeros_like(x)
+                d[i] = eps
+                diff = fun(x + d) - fun(x - d)
+                diff[2] = math.remainder(diff[2], 2 * math.pi)
+                cols.append(diff / (2 * eps))
+            return np.column_stack(cols)
+
+        assert np.allclose(f, num(lambda p, u=u: apply_increment(p, *u), pose), atol=1e-6)
+        assert np.allclose(g, num(lambda v, pose=pose: apply_increment(pose, *v), u), atol=1e-6)
 
 
 def test_covariance_propagation_equals_matrix_form():
-    """P' = F P Fᵀ + G Q Gᵀ, computed independently with matrices."""
-    from slam.motion import arc_increment, wheel_increment, wheel_increment_jacobian
+    """P' = F P Fᵀ + G Q Gᵀ with the odometry model's Q, computed with matrices."""
+    from slam.motion import OdometryModel, apply_increment, increment_jacobians
 
-    cfg = DeadReckoningConfig(initial_pose=(0.0, 0.0, 0.3))
-    dr = create("dead-reckoning", CAL, cfg)
+    dr = create("dead-reckoning", CAL, initial_pose=(0.0, 0.0, 0.3))
+    model = OdometryModel(CAL)
     rng = np.random.default_rng(8)
     left = right = 0
     pose, cov = np.array([0.0, 0.0, 0.3]), np.zeros((3, 3))
-    dr.process(EncoderTicks(0.0, 0, 0))
+    first = EncoderTicks(0.0, 0, 0)
+    dr.process(first)
+    model.increment(first)
     for k in range(1, 200):
-        dl, dr_ = rng.integers(-3, 12), rng.integers(-3, 12)
-        left, right = left + dl, right + dr_
-        dr.process(EncoderTicks(0.01 * k, left, right))
-        ds_l, ds_r = dl * CAL.metres_per_count, dr_ * CAL.metres_per_count
-        ds, dth = wheel_increment(ds_l, ds_r, CAL.track_m)
-        g = np.array(wheel_increment_jacobian(pose[2], ds, dth, CAL.track_m))
-        dx, dy = arc_increment(ds, dth, pose[2])
-        f = np.array([[1, 0, -dy], [0, 1, dx], [0, 0, 1.0]])
-        q = cfg.wheel_noise_m * np.diag([abs(ds_l), abs(ds_r)])
-        cov = f @ cov @ f.T + g @ q @ g.T
-        pose = pose + np.array([dx, dy, dth])
+        left, right = left + int(rng.integers(-3, 12)), right + int(rng.integers(-3, 12))
+        msg = EncoderTicks(0.01 * k, left, right)
+        dr.process(msg)
+        inc = model.increment(msg)
+        f, g = increment_jacobians(pose[2], inc.ds, inc.dtheta)
+        cov = f @ cov @ f.T + g @ inc.cov @ g.T
+        pose = apply_increment(pose, inc.ds, inc.dtheta)
     est = dr.estimate()
     assert np.allclose(est.covariance, cov, rtol=1e-9, atol=1e-15)
-    assert np.allclose(est.pose[:2], pose[:2])
+    assert np.allclose(est.pose, pose)
+
+
+def test_wheel_noise_maps_to_increment_covariance():
+    """Var(ds), Var(dθ) and their covariance from independent wheel noise (J Σ Jᵀ)."""
+    from slam.motion import OdometryModel
+
+    model = OdometryModel(CAL)
+    model.increment(EncoderTicks(0.0, 0, 0))
+    inc = model.increment(EncoderTicks(0.1, 100, 300))
+    m = CAL.metres_per_count
+    sigma = np.diag([0.0025 * 100 * m, 0.0025 * 300 * m])
+    j = np.array([[0.5, 0.5], [-1 / CAL.track_m, 1 / CAL.track_m]])
+    assert np.allclose(inc.cov, j @ sigma @ j.T)
+
+
+def test_brake_aware_noise_grows_with_the_logged_torque():
+    from hardware.messages import BrakeCommand
+    from slam.motion import MotionNoise, OdometryModel
+
+    noise = MotionNoise(brake_aware=True, bias_per_full_brake=0.1)
+    plain, aware = OdometryModel(CAL), OdometryModel(CAL, noise)
+    for model in (plain, aware):
+        model.increment(BrakeCommand(0.0, CAL.brake.torque_max_nm, CAL.brake.torque_off_nm))
+        model.increment(EncoderTicks(0.0, 0, 0))
+    a = plain.increment(EncoderTicks(0.1, 90, 100))
+    b = aware.increment(EncoderTicks(0.1, 90, 100))
+    assert b.cov[1, 1] > 2 * a.cov[1, 1]
+    # the left wheel's under-report (10 % at full brake) is removed: 90 counts → 100
+    assert b.dtheta == pytest.approx(0.0, abs=1e-12)
