@@ -144,6 +144,9 @@ def replay_log(
         "runtime_s": runtime,
         "realtime_factor": duration / runtime if runtime > 0 else math.inf,
     }
+    diagnostics = loc.diagnostics()
+    if diagnostics:
+        metrics["localizer_diagnostics"] = diagnostics
     est = loc.trajectory()
     files["trajectory"] = out / "trajectory.tum"
     est.write_tum(files["trajectory"])

@@ -47,10 +47,15 @@ class Localizer(ABC):
     @abstractmethod
     def trajectory(self) -> Trajectory: ...
 
+    def diagnostics(self) -> dict:
+        """What the localizer wants a researcher to know (counts, fallbacks); may be empty."""
+        return {}
+
 
 def _load_builtin() -> None:
     # Importing the modules runs their registrations.
     import slam.dead_reckoning  # noqa: F401
+    import slam.ekf_slam  # noqa: F401
 
 
 LOCALIZERS: Registry[Localizer] = Registry("localizer", _load_builtin)

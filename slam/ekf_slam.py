@@ -1,0 +1,171 @@
+"""EKF-SLAM with known data association: one Gaussian over the pose and every landmark.
+
+State [x, y, θ, u_1, v_1, …]; a landmark joins the state at its first observation
+(inverse measurement model, with its covariance and cross-covariances); odometry
+increments predict; range-bearing observations (tags seen by the camera, or range-bearing
+datasets) update, one landmark at a time, after a Mahalanobis gate rejects outliers.
+Observations without an ID (< 0) are not used (this filter needs known association).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hardware.calibration import WalkerCalibration
+from hardware.messages import Message, RangeBearing, TagDetections
+from slam.base import Localizer, PoseEstimate, register
+from slam.geometry import wrap_angle
+from slam.measurement import (
+    LandmarkObservation,
+    landmark_from_range_bearing,
+    landmark_from_range_bearing_jacobians,
+    range_bearing,
+    range_bearing_jacobians,
+    range_bearing_observation,
+    tag_observations,
+)
+from slam.motion import MotionNoise, OdometryModel, apply_increment, increment_jacobians
+from slam.trajectory import Trajectory
+
+
+@dataclass(frozen=True)
+class EkfSlamConfig:
+    """EKF-SLAM settings.
+
+    initial_pose: (x, y, θ), known exactly (it defines the map frame).
+    noise: odometry noise (slam.motion.MotionNoise).
+    range_sigma_m + range_sigma_frac·r: range noise; bearing_sigma_rad: bearing noise
+    (defaults fit the simulated tag camera and MRCLAM's barcode camera).
+    gate_chi2: Mahalanobis gate for an update (13.8 = 99.9 % for 2 DOF); inf disables.
+    """
+
+    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    noise: MotionNoise = field(default_factory=MotionNoise)
+    range_sigma_m: float = 0.05
+    range_sigma_frac: float = 0.02
+    bearing_sigma_rad: float = 0.03
+    gate_chi2: float = 13.8
+
+
+class EkfSlam(Localizer):
+    def __init__(self, config: EkfSlamConfig, calibration: WalkerCalibration) -> None:
+        self.config = config
+        self.calibration = calibration
+        self.odometry = OdometryModel(calibration, config.noise)
+        self.x = np.array(config.initial_pose, dtype=float)
+        self.P = np.zeros((3, 3))
+        self.index: dict[int, int] = {}  # landmark id → state offset
+        self.counts = {"updates": 0, "new_landmarks": 0, "gated": 0, "without_id": 0}
+        self._t: float | None = None
+        self._times: list[float] = []
+        self._poses: list[np.ndarray] = []
+
+    # -- inputs -----------------------------------------------------------------------
+    def process(self, msg: Message) -> None:
+        inc = self.odometry.increment(msg)
+        if inc is not None:
+            self._predict(inc.ds, inc.dtheta, inc.cov)
+            self._record(msg.t)
+        elif isinstance(msg, TagDetections):
+            self._observe(tag_observations(msg, self.calibration))
+        elif isinstance(msg, RangeBearing):
+            self._observe(range_bearing_observation(msg))
+        if not self._times and self.odometry.has_odometry:
+            self._record(msg.t)
+
+    def _predict(self, ds: float, dth: float, q: np.ndarray) -> None:
+        f, g = increment_jacobians(self.x[2], ds, dth)
+        self.x[:3] = apply_increment(self.x[:3], ds, dth)
+        p = self.P
+        p[:3, :3] = f @ p[:3, :3] @ f.T + g @ q @ g.T
+        p[:3, 3:] = f @ p[:3, 3:]
+        p[3:, :3] = p[:3, 3:].T
+
+    def _noise(self, z: np.ndarray) -> np.ndarray:
+        c = self.config
+        sr = c.range_sigma_m + c.range_sigma_frac * z[0]
+        return np.diag([sr * sr, c.bearing_sigma_rad**2])
+
+    def _observe(self, obs: LandmarkObservation) -> None:
+        for lid, z in zip(obs.ids, obs.z, strict=True):
+            lid = int(lid)
+            if lid < 0:
+                self.counts["without_id"] += 1
+            elif lid in self.index:
+                self._update(self.index[lid], z)
+            else:
+                self._add_landmark(lid, z)
+
+    def _add_landmark(self, lid: int, z: np.ndarray) -> None:
+        pose = self.x[:3]
+        j_s, j_z = landmark_from_range_bearing_jacobians(pose, z)
+        n = len(self.x)
+        p = np.zeros((n + 2, n + 2))
+        p[:n, :n] = self.P
+        cross = j_s @ self.P[:3, :]  # 2 × n
+        p[n:, :n] = cross
+        p[:n, n:] = cross.T
+        p[n:, n:] = j_s @ self.P[:3, :3] @ j_s.T + j_z @ self._noise(z) @ j_z.T
+        self.x = np.concatenate([self.x, landmark_from_range_bearing(pose, z)])
+        self.P = p
+        self.index[lid] = n
+        self.counts["new_landmarks"] += 1
+
+    def _update(self, j: int, z: np.ndarray) -> None:
+        x, p = self.x, self.P
+        lm = x[j : j + 2]
+        g_s, g_l = range_bearing_jacobians(x[:3], lm)
+        # P Hᵀ without forming the sparse H (pose block and this landmark's block)
+        pht = p[:, :3] @ g_s.T + p[:, j : j + 2] @ g_l.T
+        s = g_s @ pht[:3] + g_l @ pht[j : j + 2] + self._noise(z)
+        nu = z - range_bearing(x[:3], lm)
+        nu[1] = wrap_angle(nu[1])
+        s_inv = np.linalg.inv(s)
+        if float(nu @ s_inv @ nu) > self.config.gate_chi2:
+            self.counts["gated"] += 1
+            return
+        k = pht @ s_inv
+        self.x = x + k @ nu
+        self.x[2] = wrap_angle(self.x[2])
+        self.P = p - k @ s @ k.T
+        self.P = 0.5 * (self.P + self.P.T)
+        self.counts["updates"] += 1
+        if self._times:
+            self._poses[-1] = self.x[:3].copy()
+
+    def _record(self, t: float) -> None:
+        if self._times and t <= self._times[-1]:
+            return
+        self._t = t
+        self._times.append(t)
+        self._poses.append(self.x[:3].copy())
+
+    # -- outputs ----------------------------------------------------------------------
+    def estimate(self) -> PoseEstimate:
+        t = self._t if self._t is not None else float("nan")
+        return PoseEstimate(t, self.x[:3].copy(), self.P[:3, :3].copy())
+
+    def trajectory(self) -> Trajectory:
+        return Trajectory(np.array(self._times), np.array(self._poses).reshape(-1, 3))
+
+    def landmarks(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Landmark id → (mean (2,), covariance 2×2)."""
+        return {
+            lid: (self.x[j : j + 2].copy(), self.P[j : j + 2, j : j + 2].copy())
+            for lid, j in self.index.items()
+        }
+
+    def diagnostics(self) -> dict:
+        notes = dict(self.counts)
+        if self.counts["updates"] == 0 and self.counts["new_landmarks"] == 0:
+            notes["note"] = "no landmark observations with an ID: odometry only"
+        return notes
+
+
+register(
+    "ekf-slam",
+    EkfSlamConfig,
+    "EKF over the pose and all landmarks (known IDs), range-bearing updates",
+)(EkfSlam)

@@ -1,0 +1,78 @@
+"""EKF-SLAM: beats dead reckoning under slip, maps the tags, handles bad observations."""
+
+import numpy as np
+import pytest
+
+from experiments.metrics import ate
+from experiments.pipeline import Pipeline
+from hardware.calibration import WalkerCalibration
+from hardware.log import read_log
+from hardware.messages import EncoderTicks, RangeBearing
+from hardware.sim.world import World
+from slam.base import create
+from slam.ekf_slam import EkfSlamConfig
+
+
+def run(log, name):
+    trial = read_log(log)
+    loc = create(name, trial.calibration, initial_pose=trial.metadata["config"]["initial_pose"])
+    pipe = Pipeline(loc, trial.calibration, reference_map=False)
+    pipe.run(trial.messages())
+    return loc, pipe, trial
+
+
+@pytest.mark.slow
+def test_beats_dead_reckoning_and_maps_tags(course_trial):
+    """Over the whole route, which comes back past tags seen before (no loop closure
+    happens on the way out: every tag is new there)."""
+    dr, pipe, trial = run(course_trial, "dead-reckoning")
+    ekf, _, _ = run(course_trial, "ekf-slam")
+    gt = pipe.recorded.groundtruth_trajectory()
+    e_dr, e_ekf = ate(dr.trajectory(), gt), ate(ekf.trajectory(), gt)
+    assert e_ekf["ate_rmse_unaligned_m"] < 0.6 * e_dr["ate_rmse_unaligned_m"]
+    assert e_ekf["ate_rmse_m"] < e_dr["ate_rmse_m"]
+    world = World.from_dict(trial.metadata["world"])
+    lms = ekf.landmarks()
+    assert len(lms) >= 5
+    err = [np.hypot(*(mean - [world.tag(i).x, world.tag(i).y])) for i, (mean, _) in lms.items()]
+    assert np.median(err) < 0.25
+    # the filter's covariance stays a covariance
+    assert np.all(np.linalg.eigvalsh(ekf.P) > -1e-9)
+
+
+@pytest.mark.slow
+def test_same_input_same_output(course_trial):
+    a, _, _ = run(course_trial, "ekf-slam")
+    b, _, _ = run(course_trial, "ekf-slam")
+    assert np.array_equal(a.trajectory().poses, b.trajectory().poses)
+
+
+def test_without_observations_it_is_dead_reckoning_and_says_so():
+    cal = WalkerCalibration()
+    ekf, dr = create("ekf-slam", cal), create("dead-reckoning", cal)
+    for k in range(100):
+        m = EncoderTicks(0.02 * k, 5 * k, 6 * k)
+        ekf.process(m)
+        dr.process(m)
+    assert np.allclose(ekf.trajectory().poses, dr.trajectory().poses)
+    assert np.allclose(ekf.estimate().covariance, dr.estimate().covariance)
+    assert "odometry only" in ekf.diagnostics()["note"]
+
+
+def test_outlier_is_gated_and_unknown_ids_are_counted():
+    cal = WalkerCalibration()
+    ekf = create("ekf-slam", cal, EkfSlamConfig())
+    ekf.process(EncoderTicks(0.0, 0, 0))
+    ekf.process(RangeBearing(0.0, 7, 2.0, 0.0))  # landmark 7 at (2, 0)
+    for k in range(1, 20):
+        ekf.process(EncoderTicks(0.05 * k, 0, 0))
+        ekf.process(RangeBearing(0.05 * k, 7, 2.0, 0.0))
+    before = ekf.estimate().pose.copy()
+    ekf.process(RangeBearing(1.0, 7, 5.0, 1.0))  # 3 m off: an outlier
+    ekf.process(RangeBearing(1.0, -1, 1.0, 0.0))  # no ID
+    assert np.allclose(ekf.estimate().pose, before)
+    d = ekf.diagnostics()
+    assert d["gated"] == 1 and d["without_id"] == 1 and d["new_landmarks"] == 1
+    mean, cov = ekf.landmarks()[7]
+    assert mean == pytest.approx([2.0, 0.0], abs=1e-6)
+    assert cov[0, 0] < 0.05**2  # many consistent sightings shrink it
