@@ -54,7 +54,7 @@ class Localizer(ABC):
 
 def _load_builtin() -> None:
     # Importing the modules runs their registrations.
-    import slam.dead_reckoning  # noqa: F401
+    import slam.dead_reckoning
     import slam.ekf_slam  # noqa: F401
 
 
