@@ -22,6 +22,7 @@ from hardware.sim.simulator import SimConfig, Simulator
 from hardware.sim.world import World, load_world
 from mapping.export import save_map_server, save_png
 from mapping.mapper import MapperConfig
+from slam import landmarks
 from slam.base import create
 
 VERSION = "0.1.0"
@@ -125,7 +126,12 @@ def replay_log(
     cal = trial.calibration
     world = World.from_dict(trial.metadata["world"]) if "world" in trial.metadata else None
     initial_pose = trial.metadata.get("config", {}).get("initial_pose")
-    loc = create(localizer, cal, initial_pose=initial_pose)
+    loc = create(
+        localizer,
+        cal,
+        initial_pose=initial_pose,
+        landmark_map=landmarks.from_metadata(trial.metadata),
+    )
     pipeline = Pipeline(loc, cal, mapper_config, reference_map=reference_map)
     t0 = time.perf_counter()
     pipeline.run(trial.messages(), progress)

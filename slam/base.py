@@ -71,10 +71,15 @@ def create(
     calibration: WalkerCalibration,
     config: Any = None,
     initial_pose: Sequence[float] | None = None,
+    landmark_map: dict | None = None,
 ) -> Localizer:
     """Build the localizer registered as `name` with `config` (its defaults when None),
-    starting at `initial_pose` when given (overrides the config's)."""
+    starting at `initial_pose` when given (overrides the config's). `landmark_map`
+    ({id: (x, y)}, e.g. from the trial log) fills the config's `landmark_map` field when
+    the localizer has one and it is not set; other localizers ignore it."""
+    cfg = config if config is not None else LOCALIZERS.spec(name).config_type()
     if initial_pose is not None:
-        base = config if config is not None else LOCALIZERS.spec(name).config_type()
-        config = replace(base, initial_pose=tuple(float(v) for v in initial_pose))
-    return LOCALIZERS.create(name, calibration, config=config)
+        cfg = replace(cfg, initial_pose=tuple(float(v) for v in initial_pose))
+    if landmark_map is not None and getattr(cfg, "landmark_map", False) is None:
+        cfg = replace(cfg, landmark_map=landmark_map)
+    return LOCALIZERS.create(name, calibration, config=cfg)
