@@ -69,6 +69,9 @@ class Pipeline:
         self.reference = OccupancyMapper(calibration, mapper_config) if reference_map else None
         self.recorded = Recorded()
         self._latest_truth: GroundTruthPose | None = None
+        # A smoother revises past poses: keep its frames (keyed by time) to rebuild the map.
+        self._keep_frames = localizer.revises_past
+        self._built_revision = localizer.revision
 
     def feed(self, msg: Message) -> None:
         rec = self.recorded
@@ -87,7 +90,8 @@ class Pipeline:
         elif isinstance(msg, Collision):
             rec.collisions.append(msg)
         elif isinstance(msg, DepthFrame | LaserScan):
-            self._integrate(self.mapper, msg, self.localizer.estimate().pose)
+            key = msg.t if self._keep_frames else None
+            self._integrate(self.mapper, msg, self.localizer.estimate().pose, key)
             truth = self._latest_truth
             if (
                 self.reference is not None
@@ -97,19 +101,35 @@ class Pipeline:
                 self._integrate(self.reference, msg, np.array([truth.x, truth.y, truth.theta]))
 
     @staticmethod
-    def _integrate(mapper: OccupancyMapper, msg: DepthFrame | LaserScan, pose: np.ndarray) -> None:
+    def _integrate(
+        mapper: OccupancyMapper, msg: DepthFrame | LaserScan, pose: np.ndarray, key=None
+    ) -> None:
         if isinstance(msg, DepthFrame):
-            mapper.integrate_depth(msg, pose)
+            mapper.integrate_depth(msg, pose, key=key)
         else:
-            mapper.integrate_scan(msg, pose)
+            mapper.integrate_scan(msg, pose, key=key)
+
+    def rebuild_map(self) -> bool:
+        """Re-map the kept frames at the localizer's current (smoothed) trajectory, when it
+        has revised the past since the map was built. Returns whether it rebuilt."""
+        if not self._keep_frames or self.localizer.revision == self._built_revision:
+            return False
+        keys = np.array(sorted(self.mapper.keys()), dtype=float)
+        if len(keys):
+            poses = self.localizer.trajectory().interpolate(keys)
+            self.mapper.rebuild({float(k): p for k, p in zip(keys, poses, strict=True)})
+        self._built_revision = self.localizer.revision
+        return True
 
     def run(
         self, source: Iterable[Message], progress: Callable[[float], None] | None = None
     ) -> None:
+        """Feed a whole source, then rebuild the map if a smoother revised the past."""
         for msg in source:
             self.feed(msg)
             if progress is not None:
                 progress(msg.t)
+        self.rebuild_map()
 
 
 class VelocityEstimator:

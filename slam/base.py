@@ -36,6 +36,7 @@ class Localizer(ABC):
     """
 
     revision: int = 0
+    revises_past: bool = False  # smoothers: the pipeline keeps frames to rebuild the map
     config: Any  # the typed config the localizer was built with
 
     @abstractmethod
@@ -55,7 +56,9 @@ class Localizer(ABC):
 def _load_builtin() -> None:
     # Importing the modules runs their registrations.
     import slam.dead_reckoning
-    import slam.ekf_slam  # noqa: F401
+    import slam.ekf_slam
+    import slam.gtsam_smoother
+    import slam.particle_filter  # noqa: F401
 
 
 LOCALIZERS: Registry[Localizer] = Registry("localizer", _load_builtin)

@@ -22,10 +22,10 @@ def test_file_round_trip_and_errors(tmp_path):
     lm = landmarks.load(p)
     assert np.allclose(lm[6], [1.5, -2.0]) and set(lm) == {6, 7}
     p.write_text(json.dumps({"x": [1, 2]}))
-    with pytest.raises(ValueError, match="map.json: landmark 'x'"):
+    with pytest.raises(ValueError, match=r"map\.json: landmark 'x'"):
         landmarks.load(p)
     p.write_text("{")
-    with pytest.raises(ValueError, match="map.json: not JSON"):
+    with pytest.raises(ValueError, match=r"map\.json: not JSON"):
         landmarks.load(p)
     with pytest.raises(ValueError, match="cannot read"):
         landmarks.load(tmp_path / "missing.json")

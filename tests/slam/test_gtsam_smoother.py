@@ -1,0 +1,93 @@
+"""The iSAM2 smoother: beats the filters, revises the past, rebuilds the map, is robust."""
+
+import numpy as np
+import pytest
+
+from experiments.metrics import ate, map_scores
+from experiments.pipeline import Pipeline
+from hardware.calibration import WalkerCalibration
+from hardware.log import read_log
+from hardware.messages import EncoderTicks, RangeBearing
+from hardware.sim.world import World
+from slam.base import create
+
+
+def replay(log, name):
+    trial = read_log(log)
+    loc = create(name, trial.calibration, initial_pose=trial.metadata["config"]["initial_pose"])
+    pipe = Pipeline(loc, trial.calibration, reference_map=False)
+    pipe.run(trial.messages())
+    return loc, pipe, trial
+
+
+@pytest.mark.slow
+def test_smoother_beats_dead_reckoning_and_its_rebuilt_map_is_cleaner(course_trial):
+    dr, dr_pipe, trial = replay(course_trial, "dead-reckoning")
+    sm, sm_pipe, _ = replay(course_trial, "gtsam")
+    gt = dr_pipe.recorded.groundtruth_trajectory()
+    e_dr, e_sm = ate(dr.trajectory(), gt), ate(sm.trajectory(), gt)
+    assert e_sm["ate_rmse_m"] < 0.5 * e_dr["ate_rmse_m"]
+    assert e_sm["ate_rmse_unaligned_m"] < 0.5 * e_dr["ate_rmse_unaligned_m"]
+    world = World.from_dict(trial.metadata["world"])
+    outlines = [p for _, p in world.footprint_polygons(0.05, 2.0)]
+    area = dr_pipe.mapper.grid.resolution**2
+    phantom_dr = map_scores(dr_pipe.mapper.occupied_xy(), area, outlines)["phantom_area_m2"]
+    phantom_sm = map_scores(sm_pipe.mapper.occupied_xy(), area, outlines)["phantom_area_m2"]
+    assert phantom_sm < 0.5 * phantom_dr
+    assert sm.revision > 100 and sm.diagnostics()["landmark_factors"] > 100
+
+
+def test_odometry_only_is_the_odometry_chain_and_says_so():
+    cal = WalkerCalibration()
+    sm, dr = create("gtsam", cal), create("dead-reckoning", cal)
+    for k in range(300):
+        m = EncoderTicks(0.02 * k, 5 * k, 6 * k + (k // 50))
+        sm.process(m)
+        dr.process(m)
+    assert np.allclose(sm.trajectory().poses, dr.trajectory().poses, atol=1e-6)
+    assert "odometry only" in sm.diagnostics()["note"]
+
+
+def _square_with_landmarks(outlier=False):
+    """Drive a 4 m square (exact ticks) seeing landmark 3 at (2, 2) from every keyframe."""
+    cal = WalkerCalibration()
+    sm = create("gtsam", cal)
+    m = cal.metres_per_count
+    left = right = 0
+    t = 0.0
+    sm.process(EncoderTicks(t, 0, 0))
+    pose = np.zeros(3)
+    for side in range(4):
+        for _ in range(40):  # 1 m in 2.5 cm steps along x of the walker
+            n = round(0.025 / m)
+            left, right = left + n, right + n
+            t += 0.05
+            sm.process(EncoderTicks(t, left, right))
+            pose[:2] += n * m * np.array([np.cos(pose[2]), np.sin(pose[2])])
+            d = np.array([2.0, 2.0]) - pose[:2]
+            rng, bearing = np.hypot(*d), np.arctan2(d[1], d[0]) - pose[2]
+            if outlier and side == 2:
+                rng += 3.0
+            sm.process(RangeBearing(t, 3, rng, bearing))
+        # turn 90° left on the spot
+        n = round(np.pi / 2 * cal.track_m / 2 / m)
+        left, right = left - n, right + n
+        t += 0.5
+        sm.process(EncoderTicks(t, left, right))
+        pose[2] += n * m * 2 / cal.track_m
+    return sm
+
+
+def test_landmark_position_and_robust_outliers():
+    clean = _square_with_landmarks()
+    mean, cov = clean.landmarks()[3]
+    assert mean == pytest.approx([2.0, 2.0], abs=0.02)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    noisy = _square_with_landmarks(outlier=True)
+    # a whole side of 3 m-off ranges drags the landmark much less than 3 m (Huber)
+    assert np.hypot(*(noisy.landmarks()[3][0] - [2.0, 2.0])) < 0.5
+
+
+def test_same_input_same_output():
+    a, b = _square_with_landmarks(), _square_with_landmarks()
+    assert np.array_equal(a.trajectory().poses, b.trajectory().poses)
