@@ -124,3 +124,44 @@ def braking_impulse(commands: Sequence[BrakeCommand], torque_off_nm: float, t_en
     t = np.array([c.t for c in commands] + [max(t_end, commands[-1].t)])
     tau = np.array([c.left_nm + c.right_nm - 2.0 * torque_off_nm for c in commands])
     return float(np.sum(np.maximum(tau, 0.0) * np.diff(t)))
+
+
+def landmark_rmse(estimated: dict[int, np.ndarray], truth: dict[int, np.ndarray]) -> float:
+    """RMSE of estimated landmark positions against the true ones (ids in both), in the
+    map frame (the localizers start at the true initial pose, so no alignment)."""
+    common = sorted(set(estimated) & set(truth))
+    if not common:
+        return math.nan
+    d = np.array([np.asarray(estimated[i], float) - np.asarray(truth[i], float) for i in common])
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+
+def relation_errors(est: Trajectory, relations: np.ndarray) -> dict[str, float]:
+    """Kümmerle et al. (2009) relation metric: for each relation (t1, t2, x, y, yaw) — the
+    true pose at t2 in the frame at t1 — the translational [m] and rotational [deg] error
+    of the same relative pose from the estimate (interpolated at t1, t2); mean and std.
+    Relations outside the estimate's time span are left out (counted)."""
+    rel = np.asarray(relations, dtype=float).reshape(-1, 5)
+    inside = (rel[:, 0] >= est.t[0]) & (rel[:, 1] <= est.t[-1]) & (rel[:, 0] >= est.t[0])
+    inside &= (rel[:, 1] >= est.t[0]) & (rel[:, 0] <= est.t[-1])
+    r = rel[inside]
+    out = {"relations_used": len(r), "relations_skipped": int(len(rel) - len(r))}
+    if len(r) == 0:
+        return {
+            **out,
+            "relations_trans_mean_m": math.nan,
+            "relations_trans_std_m": math.nan,
+            "relations_rot_mean_deg": math.nan,
+            "relations_rot_std_deg": math.nan,
+        }
+    measured = between(est.interpolate(r[:, 0]), est.interpolate(r[:, 1]))
+    err = between(r[:, 2:5], measured)
+    trans = np.hypot(err[:, 0], err[:, 1])
+    rot = np.degrees(np.abs(err[:, 2]))
+    return {
+        **out,
+        "relations_trans_mean_m": float(trans.mean()),
+        "relations_trans_std_m": float(trans.std()),
+        "relations_rot_mean_deg": float(rot.mean()),
+        "relations_rot_std_deg": float(rot.std()),
+    }

@@ -70,3 +70,30 @@ def test_braking_impulse_above_residual():
         BrakeCommand(3.0, 0.068, 0.068),
     ]
     assert braking_impulse(cmds, 0.068, 10.0) == pytest.approx(4.0)
+
+
+def test_landmark_rmse():
+    from experiments.metrics import landmark_rmse
+
+    truth = {1: np.array([0.0, 0.0]), 2: np.array([1.0, 1.0]), 3: np.array([5.0, 5.0])}
+    est = {1: np.array([0.3, 0.4]), 2: np.array([1.0, 1.0]), 9: np.array([0.0, 0.0])}
+    assert landmark_rmse(est, truth) == pytest.approx(np.sqrt(0.25 / 2))
+    assert np.isnan(landmark_rmse({}, truth))
+
+
+def test_relation_errors_zero_for_exact_and_known_for_scaled():
+    from experiments.metrics import relation_errors
+    from slam.geometry import between
+
+    gt = gt_traj()
+    i, j = np.arange(0, 380, 7), np.arange(20, 400, 7)
+    rel = np.column_stack([gt.t[i], gt.t[j], between(gt.poses[i], gt.poses[j])])
+    out = relation_errors(gt, rel)
+    assert out["relations_trans_mean_m"] == pytest.approx(0.0, abs=1e-9)
+    assert out["relations_used"] == len(i)
+    # an estimate that walks 10 % too far: each relation's translation error is 10 % of it
+    scaled = Trajectory(gt.t, np.column_stack([gt.poses[:, :2] * 1.1, gt.poses[:, 2]]))
+    out = relation_errors(scaled, rel)
+    expected = 0.1 * np.hypot(*(gt.poses[j, :2] - gt.poses[i, :2]).T).mean()
+    assert out["relations_trans_mean_m"] == pytest.approx(expected, rel=1e-6)
+    assert out["relations_rot_mean_deg"] == pytest.approx(0.0, abs=1e-9)

@@ -1,0 +1,288 @@
+"""UTIAS MRCLAM (Multi-Robot Cooperative Localization and Mapping, Leung et al., IJRR 2011).
+
+`open_dataset("mrclam", FOLDER, robot=N)` reads one robot of a dataset folder
+(`MRCLAM_Dataset1` … `9`: five iRobot Create robots, fifteen barcoded landmarks, Vicon
+ground truth). Files are whitespace/TAB separated text with `#` header lines, plain or
+gzipped (`X.dat` or `X.dat.gz`):
+
+    Barcodes.dat               subject barcode      (subjects 1–5 robots, 6–20 landmarks)
+    Landmark_Groundtruth.dat   subject x y x_std y_std   [m]
+    RobotN_Odometry.dat        t v ω                 [s Unix, m/s, rad/s]
+    RobotN_Measurement.dat     t barcode range bearing   [s, -, m, rad CCW from heading]
+    RobotN_Groundtruth.dat     t x y θ               [s, m, m, rad] (Vicon, ~100 Hz, gaps)
+
+Conversion
+----------
+- Odometry rows → `VelocityOdometry(t, v, ω)`: the velocities hold from t to the next
+  row (what the dead-reckoning localizer integrates). Rows with equal timestamps are kept
+  (a localizer integrates nothing over a zero interval; the later row then holds).
+- Measurement rows: the barcode is mapped to a subject through Barcodes.dat. Subjects
+  6–20 (the landmarks) → `RangeBearing(t, landmark_id=subject, range, bearing)`;
+  subjects 1–5 are the other robots, skipped and counted (metadata "skipped"
+  "other_robots"); barcodes not in Barcodes.dat are spurious, skipped and counted
+  ("unknown_barcodes", their values in "unknown_barcode_values").
+- Ground truth rows → `GroundTruthPose` (θ wrapped to (−π, π]).
+- Landmark_Groundtruth.dat → metadata "landmarks" {"6": [x, y], …} and
+  "landmark_std" {"6": [x_std, y_std], …}.
+- Times stay absolute Unix seconds, exactly as in the files (float64: ~0.2 µs
+  resolution at 1.25e9 s, finer than the files' 1 ms). All five robots and the ground
+  truth share this clock, so several robots' logs line up.
+- initial_pose (metadata "config") is the ground truth interpolated at the first
+  odometry time (the pose a localizer starts from; "initial_pose_t" records that
+  time), or (0, 0, 0) without ground truth.
+
+Ground truth (option `groundtruth`, metadata "groundtruth" {"kind", "source", "note"}):
+
+    "auto"         exact Vicon file if present, else the approximate one, else none
+    "exact"        RobotN_Groundtruth.dat (a DatasetError if it is missing)
+    "approximate"  groundtruth_approx/RobotN_Groundtruth_intsec.csv(.gz): Dataset 1's
+                   Vicon rows re-saved through a spreadsheet with timestamps truncated to
+                   whole seconds (`t_int,x,y,θ`, one header line). The rows of one second
+                   are spread evenly over it (t = s + (k + ½)/n, k = 0…n−1), so timing
+                   errors are up to ±0.5 s (~0.1 m at the robots' 0.1–0.3 m/s)
+    "none"         no ground truth
+
+Calibration: the walker defaults, with the iRobot Create's (Roomba base) wheel track
+0.258 m and ~0.34 m round body (Hacking Roomba, Fig. 5-5) as track and footprint. The
+dataset's odometry is velocities, so no encoder calibration applies.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hardware.calibration import WalkerCalibration
+from hardware.datasets.base import (
+    Dataset,
+    DatasetError,
+    as_int,
+    check_choice,
+    groundtruth_stream,
+    interpolate_pose,
+    options_dict,
+    register,
+    sorted_stream_order,
+)
+from hardware.datasets.textio import Table, find_file, find_optional, read_table
+from hardware.messages import GroundTruthPose, RangeBearing, VelocityOdometry
+
+ROBOTS = (1, 2, 3, 4, 5)
+LANDMARK_SUBJECTS = tuple(range(6, 21))
+GROUNDTRUTH_CHOICES = ("auto", "exact", "approximate", "none")
+APPROX_DIR = "groundtruth_approx"
+
+CREATE_TRACK_M = 0.258
+CREATE_DIAMETER_M = 0.34
+
+
+@dataclass(frozen=True)
+class MrclamOptions:
+    """robot: 1–5. groundtruth: "auto" | "exact" | "approximate" | "none"."""
+
+    robot: int = 1
+    groundtruth: str = "auto"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "robot", as_int("robot", self.robot))
+        check_choice("groundtruth", self.groundtruth, GROUNDTRUTH_CHOICES)
+
+
+def _odometry_stream(t: np.ndarray, v: np.ndarray, w: np.ndarray):
+    def gen() -> Iterator[VelocityOdometry]:
+        for ti, vi, wi in zip(t.tolist(), v.tolist(), w.tolist(), strict=True):
+            yield VelocityOdometry(ti, vi, wi)
+
+    return gen
+
+
+def _range_bearing_stream(t: np.ndarray, ids: np.ndarray, r: np.ndarray, b: np.ndarray):
+    def gen() -> Iterator[RangeBearing]:
+        for ti, i, ri, bi in zip(t.tolist(), ids.tolist(), r.tolist(), b.tolist(), strict=True):
+            yield RangeBearing(ti, i, ri, bi)
+
+    return gen
+
+
+def _sorted(table: Table, notes: list[str]) -> np.ndarray:
+    order, back = sorted_stream_order(table.data[:, 0])
+    if order is None:
+        return table.data
+    notes.append(f"{table.path.name}: {back} timestamps step back; rows stably sorted by time")
+    return table.data[order]
+
+
+def _barcodes(path: Path) -> dict[int, int]:
+    table = read_table(path, 2)
+    subjects = table.integer_column(0, "subject")
+    codes = table.integer_column(1, "barcode")
+    out: dict[int, int] = {}
+    for line, s, c in zip(table.lines.tolist(), subjects.tolist(), codes.tolist(), strict=True):
+        if c in out:
+            raise DatasetError(f"{path}: line {line}: barcode {c} listed twice")
+        out[c] = s
+    return out
+
+
+def _approx_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Times spread within their whole second and poses of an `_intsec` CSV."""
+    table = read_table(path, 4, delimiter=",", skip_header=1)
+    sec = table.data[:, 0]
+    if np.any(np.diff(sec) < 0):
+        i = int(np.nonzero(np.diff(sec) < 0)[0][0]) + 1
+        raise DatasetError(f"{path}: line {table.lines[i]}: time steps back")
+    # rows of one second: k = 0..n-1 -> s + (k + 0.5)/n
+    starts = np.r_[0, np.nonzero(np.diff(sec))[0] + 1]
+    counts = np.diff(np.r_[starts, len(sec)])
+    k = np.arange(len(sec)) - np.repeat(starts, counts)
+    t = sec + (k + 0.5) / np.repeat(counts, counts)
+    return t, table.data[:, 1:4]
+
+
+def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
+    folder = Path(path)
+    if not folder.is_dir():
+        what = "missing folder" if not folder.exists() else "not a folder"
+        raise DatasetError(f"{folder}: {what} (mrclam takes the dataset folder)")
+    robot = options.robot
+    present = [r for r in ROBOTS if find_optional(folder, f"Robot{r}_Odometry.dat")]
+    if robot not in ROBOTS or robot not in present:
+        valid = ", ".join(str(r) for r in present) or "none found"
+        raise DatasetError(f"{folder}: unknown robot number {robot}; valid: {valid}")
+
+    notes: list[str] = []
+    files: dict[str, str] = {}
+
+    def locate(name: str) -> Path:
+        p = find_file(folder, name)
+        files[name] = str(p)
+        return p
+
+    barcodes = _barcodes(locate("Barcodes.dat"))
+    lm = read_table(locate("Landmark_Groundtruth.dat"), 5)
+    lm_ids = lm.integer_column(0, "subject")
+    odo = _sorted(read_table(locate(f"Robot{robot}_Odometry.dat"), 3), notes)
+    meas_table = read_table(locate(f"Robot{robot}_Measurement.dat"), 4)
+    codes = meas_table.integer_column(1, "barcode")
+    order, back = sorted_stream_order(meas_table.data[:, 0])
+    meas = meas_table.data
+    if order is not None:
+        notes.append(f"measurements: {back} timestamps step back; rows stably sorted by time")
+        meas, codes = meas[order], codes[order]
+
+    # barcode -> subject; split into landmarks, other robots, spurious
+    subject = np.array([barcodes.get(c, -1) for c in codes.tolist()], dtype=np.int64)
+    is_landmark = np.isin(subject, LANDMARK_SUBJECTS)
+    is_robot = np.isin(subject, ROBOTS)
+    unknown = ~(is_landmark | is_robot)
+    skipped = {
+        "other_robots": int(np.count_nonzero(is_robot)),
+        "unknown_barcodes": int(np.count_nonzero(unknown)),
+        "unknown_barcode_values": sorted({int(c) for c in codes[unknown].tolist()}),
+    }
+    rb = meas[is_landmark]
+    rb_ids = subject[is_landmark]
+
+    # ground truth
+    gt_kind = "none"
+    gt_t = gt_p = None
+    exact_name = f"Robot{robot}_Groundtruth.dat"
+    approx_name = f"{APPROX_DIR}/Robot{robot}_Groundtruth_intsec.csv"
+    choice = options.groundtruth
+    if choice in ("auto", "exact") and (choice == "exact" or find_optional(folder, exact_name)):
+        g = _sorted(read_table(locate(exact_name), 4), notes)
+        gt_t, gt_p, gt_kind = g[:, 0], g[:, 1:4], "exact"
+    elif choice in ("auto", "approximate") and (
+        choice == "approximate" or find_optional(folder, approx_name)
+    ):
+        gt_t, gt_p = _approx_groundtruth(locate(approx_name))
+        gt_kind = "approximate"
+    groundtruth: dict[str, Any] = {"kind": gt_kind}
+    if gt_kind == "exact":
+        groundtruth.update(source="Vicon motion capture", file=files[exact_name])
+    elif gt_kind == "approximate":
+        groundtruth.update(
+            source="Vicon rows re-saved with timestamps truncated to whole seconds",
+            file=files[approx_name],
+            note=(
+                "rows of one second spread evenly over it (t = s + (k + 0.5)/n); timing "
+                "error up to +-0.5 s, about 0.1 m at the robots' speeds: coarse scoring only"
+            ),
+        )
+    else:
+        groundtruth["note"] = "no ground truth for this robot in this folder"
+
+    t_odo0 = float(odo[0, 0])
+    if gt_t is not None:
+        initial = interpolate_pose(gt_t, gt_p, t_odo0)
+    else:
+        initial = (0.0, 0.0, 0.0)
+
+    streams: dict[type, Any] = {
+        VelocityOdometry: _odometry_stream(odo[:, 0], odo[:, 1], odo[:, 2]),
+    }
+    if gt_t is not None:
+        streams[GroundTruthPose] = groundtruth_stream(gt_t, gt_p)
+    streams[RangeBearing] = _range_bearing_stream(rb[:, 0], rb_ids, rb[:, 2], rb[:, 3])
+
+    counts = {
+        "VelocityOdometry": len(odo),
+        "GroundTruthPose": 0 if gt_t is None else len(gt_t),
+        "RangeBearing": len(rb),
+    }
+    times = [odo[0, 0], odo[-1, 0]] + ([gt_t[0], gt_t[-1]] if gt_t is not None else [])
+    if len(rb):
+        times += [rb[0, 0], rb[-1, 0]]
+    name = f"{folder.name}/robot{robot}"
+    metadata: dict[str, dict[str, Any]] = {
+        "config": {
+            "format": "mrclam",
+            "path": str(folder.resolve()),
+            **options_dict(options),
+            "initial_pose": list(initial),
+            "initial_pose_t": t_odo0,
+        },
+        "dataset": {
+            "name": name,
+            "description": (
+                "UTIAS MRCLAM (Leung et al., IJRR 30(8), 2011): iRobot Create with a "
+                "monocular camera, 15 barcoded landmarks, Vicon ground truth"
+            ),
+            "robot": robot,
+            "time_base": "Unix epoch seconds, as in the files (not offset)",
+            "t_first": float(min(times)),
+            "t_last": float(max(times)),
+            "counts": counts,
+            "measurement_rows": len(meas),
+            "files": files,
+            "notes": notes,
+        },
+        "landmarks": {
+            str(i): [float(x), float(y)]
+            for i, (x, y) in zip(lm_ids.tolist(), lm.data[:, 1:3].tolist(), strict=True)
+        },
+        "landmark_std": {
+            str(i): [float(sx), float(sy)]
+            for i, (sx, sy) in zip(lm_ids.tolist(), lm.data[:, 3:5].tolist(), strict=True)
+        },
+        "skipped": skipped,
+        "groundtruth": groundtruth,
+    }
+    calibration = WalkerCalibration(
+        track_m=CREATE_TRACK_M,
+        frame_width_m=CREATE_DIAMETER_M,
+        frame_length_m=CREATE_DIAMETER_M,
+    )
+    arrays = {"landmark_ids": lm_ids, "landmark_xy": lm.data[:, 1:3].copy()}
+    return Dataset(name, calibration, metadata, streams, arrays)
+
+
+register(
+    "mrclam",
+    MrclamOptions,
+    "UTIAS MRCLAM dataset folder, one robot: velocity odometry, known-ID range-bearing, Vicon",
+)(open_mrclam)

@@ -1,0 +1,228 @@
+"""MRCLAM importer: synthetic folders (parsing, barcode mapping, errors) and dataset 7/1."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from datasets_testdata import assert_same_messages, data_dir, write_mrclam, write_text
+
+from experiments.metrics import ate
+from hardware.datasets import DatasetError, import_to_log, open_dataset
+from hardware.log import read_log
+from hardware.messages import GroundTruthPose, RangeBearing, VelocityOdometry
+from slam.base import create
+from slam.trajectory import Trajectory
+
+# ---------------------------------------------------------------------------------------
+# synthetic
+
+
+@pytest.mark.parametrize("gz", [False, True])
+def test_synthetic_folder(tmp_path, gz):
+    ds = open_dataset("mrclam", write_mrclam(tmp_path, gz=gz), robot=1)
+    msgs = list(ds.messages())
+    odo = [m for m in msgs if isinstance(m, VelocityOdometry)]
+    rb = [m for m in msgs if isinstance(m, RangeBearing)]
+    gt = [m for m in msgs if isinstance(m, GroundTruthPose)]
+    # equal timestamps are kept (the later row holds)
+    assert [(m.t, m.v, m.omega) for m in odo] == [
+        (1000.0, 0.1, 0.0),
+        (1000.5, 0.1, 0.2),
+        (1001.0, 0.0, 0.0),
+        (1001.0, 0.05, 0.0),
+    ]
+    # barcode 63 -> landmark 6, 81 -> 7; 14 is robot 2, 99 is spurious
+    assert [(m.t, m.landmark_id, m.range_m, m.bearing_rad) for m in rb] == [
+        (1000.2, 6, 1.5, 0.1),
+        (1000.9, 7, 2.5, 1.0),
+    ]
+    assert ds.metadata["skipped"] == {
+        "other_robots": 1,
+        "unknown_barcodes": 1,
+        "unknown_barcode_values": [99],
+    }
+    assert ds.metadata["landmarks"] == {"6": [1.0, 2.0], "7": [-1.5, 0.5]}
+    assert ds.metadata["landmark_std"]["7"] == [0.001, 0.002]
+    # θ wrapped into (-π, π]
+    assert gt[-1].theta == pytest.approx(3.2 - 2 * math.pi)
+    assert ds.metadata["groundtruth"]["kind"] == "exact"
+    # initial pose: ground truth at the first odometry time (1000.0, between 999.9 and 1000.1)
+    assert ds.initial_pose == pytest.approx((0.01, 0.0, 0.0))
+    assert ds.metadata["config"]["initial_pose_t"] == 1000.0
+    assert ds.counts() == {"VelocityOdometry": 4, "GroundTruthPose": 3, "RangeBearing": 2}
+    assert ds.name == f"{tmp_path.name}/robot1"
+    assert ds.calibration.track_m == pytest.approx(0.258)
+    # time order: at 1001.0 both odometry rows, then nothing else
+    assert [m.t for m in msgs] == sorted(m.t for m in msgs)
+
+
+def test_unknown_robot_number_lists_the_valid_ones(tmp_path):
+    folder = write_mrclam(tmp_path)
+    with pytest.raises(DatasetError, match=r"unknown robot number 7; valid: 1, 2$") as e:
+        open_dataset("mrclam", folder, robot=7)
+    assert str(folder) in str(e.value)
+
+
+def test_missing_folder_and_missing_file(tmp_path):
+    with pytest.raises(DatasetError, match="missing folder"):
+        open_dataset("mrclam", tmp_path / "nope", robot=1)
+    folder = write_mrclam(tmp_path / "f")
+    (folder / "Barcodes.dat").unlink()
+    with pytest.raises(DatasetError, match=r"Barcodes\.dat: missing file"):
+        open_dataset("mrclam", folder, robot=1)
+
+
+def test_malformed_measurement_names_file_and_line(tmp_path):
+    folder = write_mrclam(tmp_path)
+    write_text(
+        folder / "Robot1_Measurement.dat",
+        "# h\r\n1000.1 \t 63 \t 1.0 \t 0.0\r\n1000.2 \t 63 \t 1.0\r\n",
+    )
+    with pytest.raises(DatasetError, match=r"Robot1_Measurement\.dat: line 3: expected 4 columns"):
+        open_dataset("mrclam", folder, robot=1)
+    write_text(folder / "Robot1_Measurement.dat", "1000.1 \t 6.5 \t 1.0 \t 0.0\r\n")
+    with pytest.raises(DatasetError, match=r"line 1: barcode must be an integer"):
+        open_dataset("mrclam", folder, robot=1)
+
+
+def test_groundtruth_options(tmp_path):
+    folder = write_mrclam(tmp_path, groundtruth=False)
+    ds = open_dataset("mrclam", folder, robot=2)
+    assert ds.metadata["groundtruth"]["kind"] == "none"
+    assert ds.initial_pose == (0.0, 0.0, 0.0)
+    assert GroundTruthPose not in ds.streams
+    with pytest.raises(DatasetError, match=r"Robot2_Groundtruth\.dat: missing file"):
+        open_dataset("mrclam", folder, robot=2, groundtruth="exact")
+    # approximate ground truth: whole-second times, rows spread over their second
+    write_text(
+        folder / "groundtruth_approx" / "Robot2_Groundtruth_intsec.csv.gz",
+        "\ufeffTime,X,Y,Orientation\n999,0,0,0\n1000,1,0,0\n1000,2,0,0\n1000,3,0,0\n1001,4,0,0\n",
+        gz=True,
+    )
+    ds = open_dataset("mrclam", folder, robot=2)
+    gt = list(ds.messages([GroundTruthPose]))
+    assert [m.t for m in gt] == pytest.approx([999.5, 1000 + 1 / 6, 1000.5, 1000 + 5 / 6, 1001.5])
+    assert ds.metadata["groundtruth"]["kind"] == "approximate"
+    assert "0.5 s" in ds.metadata["groundtruth"]["note"]
+    none = open_dataset("mrclam", folder, robot=2, groundtruth="none")
+    assert none.metadata["groundtruth"]["kind"] == "none"
+
+
+# ---------------------------------------------------------------------------------------
+# dataset 7 (data)
+
+
+@pytest.fixture(scope="module")
+def ds7_robot1():
+    return open_dataset("mrclam", data_dir("mrclam_dataset7"), robot=1)
+
+
+@pytest.mark.data
+def test_dataset7_robot1_counts_match_the_files(ds7_robot1):
+    ds = ds7_robot1
+    # Robot1_Odometry 58598 rows, Robot1_Groundtruth 58389, Robot1_Measurement 3228
+    assert ds.counts() == {
+        "VelocityOdometry": 58598,
+        "GroundTruthPose": 58389,
+        "RangeBearing": 2578,
+    }
+    assert ds.metadata["dataset"]["measurement_rows"] == 3228
+    # 650 measurements of other robots, no spurious barcode: 3228 - 650 = 2578
+    assert ds.metadata["skipped"]["other_robots"] == 650
+    assert ds.metadata["skipped"]["unknown_barcodes"] == 0
+    assert len(ds.metadata["landmarks"]) == 15
+    assert sorted(int(k) for k in ds.metadata["landmarks"]) == list(range(6, 21))
+    assert ds.metadata["landmarks"]["6"] == [0.5884266, -4.28209684]
+    assert ds.metadata["config"]["initial_pose_t"] == 1248446188.323
+    assert ds.metadata["groundtruth"]["kind"] == "exact"
+
+
+@pytest.mark.data
+def test_dataset7_barcode_mapping(ds7_robot1):
+    rb = list(ds7_robot1.messages([RangeBearing]))
+    # the first measurement line is barcode 61, which Barcodes.dat maps to subject 14
+    assert (rb[0].t, rb[0].landmark_id, rb[0].range_m, rb[0].bearing_rad) == (
+        1248446189.249,
+        14,
+        1.682,
+        0.032,
+    )
+    assert {m.landmark_id for m in rb} <= set(range(6, 21))
+
+
+@pytest.mark.data
+def test_dataset7_spurious_barcodes_robot3():
+    ds = open_dataset("mrclam", data_dir("mrclam_dataset7"), robot=3)
+    assert ds.metadata["skipped"] == {
+        "other_robots": 965,
+        "unknown_barcodes": 9,
+        "unknown_barcode_values": [34, 52],
+    }
+
+
+@pytest.mark.data
+def test_dataset7_measurements_agree_with_groundtruth(ds7_robot1):
+    """Range and bearing predicted from the Vicon pose and landmark agree with the
+    measurements (proves the barcode mapping and the bearing convention)."""
+    ds = ds7_robot1
+    gt = list(ds.messages([GroundTruthPose]))
+    t = np.array([m.t for m in gt])
+    poses = Trajectory(t, np.array([(m.x, m.y, m.theta) for m in gt]))
+    rb = [m for m in ds.messages([RangeBearing]) if t[0] <= m.t <= t[-1]]
+    p = poses.interpolate(np.array([m.t for m in rb]))
+    lm = np.array([ds.metadata["landmarks"][str(m.landmark_id)] for m in rb])
+    d = lm - p[:, :2]
+    rng_err = np.hypot(d[:, 0], d[:, 1]) - np.array([m.range_m for m in rb])
+    brg = np.arctan2(d[:, 1], d[:, 0]) - p[:, 2] - np.array([m.bearing_rad for m in rb])
+    brg_err = np.angle(np.exp(1j * brg))
+    assert np.median(np.abs(rng_err)) < 0.1
+    assert np.median(np.abs(brg_err)) < 0.05
+
+
+@pytest.mark.data
+def test_dataset7_dead_reckoning_first_60s(ds7_robot1):
+    ds = ds7_robot1
+    t0 = ds.metadata["config"]["initial_pose_t"]
+    loc = create("dead-reckoning", ds.calibration, initial_pose=ds.initial_pose)
+    gt_t, gt = [], []
+    for m in ds.messages():
+        if m.t > t0 + 60.0:
+            break
+        if isinstance(m, GroundTruthPose):
+            if m.t >= t0:
+                gt_t.append(m.t)
+                gt.append((m.x, m.y, m.theta))
+        else:
+            loc.process(m)
+    err = ate(loc.trajectory(), Trajectory(np.array(gt_t), np.array(gt)))
+    # measured: 0.12 m aligned, 0.25 m unaligned, 0.39 m at the end (60 s, ~7 m driven)
+    assert err["ate_rmse_m"] < 0.3
+    assert err["ate_rmse_unaligned_m"] < 0.6
+    assert err["final_position_error_m"] < 1.0
+
+
+@pytest.mark.data
+def test_dataset1_robot5_has_no_groundtruth_robot1_approximate():
+    folder = data_dir("mrclam_dataset1")
+    r5 = open_dataset("mrclam", folder, robot=5)
+    assert r5.metadata["groundtruth"]["kind"] == "none"
+    assert r5.initial_pose == (0.0, 0.0, 0.0)
+    r1 = open_dataset("mrclam", folder, robot=1)
+    assert r1.metadata["groundtruth"]["kind"] == "approximate"
+    assert r1.counts()["GroundTruthPose"] == 81877
+    assert r1.metadata["skipped"]["unknown_barcodes"] == 0
+    with pytest.raises(DatasetError, match=r"Robot1_Groundtruth\.dat: missing file"):
+        open_dataset("mrclam", folder, robot=1, groundtruth="exact")
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_dataset7_robot1_full_import(tmp_path, ds7_robot1):
+    summary = import_to_log(ds7_robot1, tmp_path / "mrclam7_r1.mcap")
+    assert summary.counts == ds7_robot1.counts()
+    trial = read_log(summary.path)
+    assert trial.metadata["config"]["initial_pose"] == list(ds7_robot1.initial_pose)
+    assert len(trial.metadata["landmarks"]) == 15
+    assert_same_messages(list(trial.messages()), list(ds7_robot1.messages()))
