@@ -72,7 +72,7 @@ def progress_bar(label: str, total: float | None):
     with Progress(
         TextColumn("{task.description}"),
         BarColumn(),
-        TextColumn("{task.completed:>6.1f}/{task.total:.0f} s"),
+        TextColumn("{task.completed:>6.1f} s"),
         TimeElapsedColumn(),
         TimeRemainingColumn(),
         console=err_console,
@@ -171,16 +171,59 @@ def simulate(
     )
 
 
+RobotOpt = Annotated[int | None, typer.Option(help="mrclam: robot number (1-5)")]
+RelationsOpt = Annotated[
+    Path | None, typer.Option(help="carmen: benchmark relations file (Kümmerle et al.)")
+]
+TimeOffsetOpt = Annotated[
+    float | None, typer.Option(help="carmen: seconds added to the relations' times")
+]
+
+
+def _dataset_options(robot, relations, time_offset) -> dict:
+    given = {"robot": robot, "relations": relations, "time_offset": time_offset}
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in given.items() if v is not None}
+
+
+@app.command(name="import")
+@friendly
+def import_(
+    format: Annotated[str, typer.Argument(help="mrclam, carmen or victoria-park")],
+    path: Annotated[Path, typer.Argument(help="dataset folder or log file")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="trial log to write (.mcap)")],
+    robot: RobotOpt = None,
+    relations: RelationsOpt = None,
+    time_offset: TimeOffsetOpt = None,
+) -> None:
+    """Convert a public dataset into a trial log (messages, calibration, ground truth)."""
+    from hardware.datasets import import_dataset
+
+    summary = import_dataset(
+        format, path, output, **_dataset_options(robot, relations, time_offset)
+    )
+    d = summary.to_dict()
+    console.print(
+        f"wrote {d['path']}: {d.get('messages', '?')} messages over {d['duration_s']:.1f} s",
+        highlight=False,
+    )
+
+
 @app.command()
 @friendly
 def replay(
-    log: Annotated[Path, typer.Argument(help="trial log (.mcap)")],
+    log: Annotated[Path, typer.Argument(help="trial log (.mcap), or a dataset with --format")],
     localizer: Annotated[str, typer.Option(help="localizer to run")] = "dead-reckoning",
     out: Annotated[Path, typer.Option(help="output folder")] = Path("out/replay"),
     map_model: Annotated[
         str, typer.Option(help="log-odds, or view-count (the thesis's >50 % of views)")
     ] = "log-odds",
     resolution: Annotated[float, typer.Option(help="map cell size [m]")] = 0.05,
+    format: Annotated[
+        str | None, typer.Option(help="read LOG as a dataset: mrclam, carmen, victoria-park")
+    ] = None,
+    robot: RobotOpt = None,
+    relations: RelationsOpt = None,
+    time_offset: TimeOffsetOpt = None,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics."""
@@ -192,15 +235,29 @@ def replay(
     if map_model not in [m.value for m in MapModel]:
         raise ValueError(f"unknown map model '{map_model}'; valid: log-odds, view-count")
     mapper_config = MapperConfig(grid=GridConfig(resolution_m=resolution, model=map_model))
-    trial = read_log(log)  # fail fast on a bad file, before the progress bar
-    t0, t1 = trial.time_range if trial.message_count else (0.0, 0.0)
-    with progress_bar(f"replaying with {localizer}", t1 - t0) as update:
+    if format is not None:
+        from hardware.datasets import open_dataset
+
+        trial = open_dataset(format, log, **_dataset_options(robot, relations, time_offset))
+        total = None  # unknown until read
+    else:
+        trial = read_log(log)  # fail fast on a bad file, before the progress bar
+        t0, t1 = trial.time_range if trial.message_count else (0.0, 0.0)
+        total = t1 - t0
+    start: list[float] = []
+
+    def elapsed(t: float) -> float:
+        if not start:
+            start.append(t)
+        return t - start[0]
+
+    with progress_bar(f"replaying with {localizer}", total) as update:
         res = replay_log(
             trial,
             out,
             localizer=localizer,
             mapper_config=mapper_config,
-            progress=lambda t: update(t - t0),
+            progress=lambda t: update(elapsed(t)),
         )
     _print_metrics(res.metrics, res.files)
 

@@ -44,6 +44,12 @@ def align_se2(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return r, mu_d - r @ mu_s
 
 
+def trajectory_alignment(est: Trajectory, gt: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """The SE(2) alignment (R, t) of the estimate onto the ground truth used by `ate`."""
+    _, e, g = associate(est, gt)
+    return align_se2(e[:, :2], g[:, :2])
+
+
 def ate(est: Trajectory, gt: Trajectory) -> dict[str, float]:
     """Absolute trajectory error (position RMSE), after SE(2) alignment and unaligned."""
     _, e, g = associate(est, gt)
@@ -126,13 +132,21 @@ def braking_impulse(commands: Sequence[BrakeCommand], torque_off_nm: float, t_en
     return float(np.sum(np.maximum(tau, 0.0) * np.diff(t)))
 
 
-def landmark_rmse(estimated: dict[int, np.ndarray], truth: dict[int, np.ndarray]) -> float:
+def landmark_rmse(
+    estimated: dict[int, np.ndarray],
+    truth: dict[int, np.ndarray],
+    alignment: tuple[np.ndarray, np.ndarray] | None = None,
+) -> float:
     """RMSE of estimated landmark positions against the true ones (ids in both), in the
-    map frame (the localizers start at the true initial pose, so no alignment)."""
+    map frame, or after `alignment` (R, t) — e.g. the trajectory's, from
+    `trajectory_alignment`, so map and path are judged in the same frame."""
     common = sorted(set(estimated) & set(truth))
     if not common:
         return math.nan
-    d = np.array([np.asarray(estimated[i], float) - np.asarray(truth[i], float) for i in common])
+    est = np.array([np.asarray(estimated[i], float) for i in common])
+    if alignment is not None:
+        est = est @ alignment[0].T + alignment[1]
+    d = est - np.array([np.asarray(truth[i], float) for i in common])
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 
 

@@ -76,7 +76,7 @@ def write_figures(
         fig.savefig(files["errors_png"], dpi=130, bbox_inches="tight")
         plt.close(fig)
 
-    if pipeline.reference is not None and gt is not None:
+    if pipeline.reference is not None and gt is not None and pipeline.mapper.grid.known().any():
         fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.8))
         _draw_map(a1, pipeline.reference.grid, outlines, "map from ground-truth poses")
         _draw_map(a2, pipeline.mapper.grid, outlines, "map from the localizer's poses")

@@ -14,9 +14,12 @@ from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from control.base import CONTROLLERS
 from experiments import metrics as M
 from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
+from hardware.datasets import Dataset
 from hardware.log import LogWriter, TrialLog, read_log
 from hardware.sim.simulator import SimConfig, Simulator
 from hardware.sim.world import World, load_world
@@ -105,32 +108,35 @@ class ReplayResult:
 
 
 def replay_log(
-    log: str | Path | TrialLog,
+    log: str | Path | TrialLog | Dataset,
     out_dir: str | Path,
     *,
     localizer: str = "dead-reckoning",
+    localizer_config: Any = None,
     mapper_config: MapperConfig | None = None,
     figures: bool = True,
     reference_map: bool = True,
     progress: Callable[[float], None] | None = None,
 ) -> ReplayResult:
-    """Run a recorded trial (a path or an opened log) through a localizer and the mapper;
-    write estimates, maps, metrics against ground truth (when the log has it) and the
-    run's config.
+    """Run a recorded trial (a log path, an opened log or an opened dataset) through a
+    localizer and the mapper; write estimates, maps, metrics against ground truth (when
+    the source has it) and the run's config.
 
     reference_map: also map the same frames at the true poses (when the log has ground
     truth), for the side-by-side figure and the reference map scores.
     """
-    trial = log if isinstance(log, TrialLog) else read_log(log)
-    log_path = trial.path
+    trial = log if isinstance(log, TrialLog | Dataset) else read_log(log)
+    log_path = trial.path if isinstance(trial, TrialLog) else f"{trial.name}"
     cal = trial.calibration
     world = World.from_dict(trial.metadata["world"]) if "world" in trial.metadata else None
     initial_pose = trial.metadata.get("config", {}).get("initial_pose")
+    true_landmarks = landmarks.from_metadata(trial.metadata)
     loc = create(
         localizer,
         cal,
+        localizer_config,
         initial_pose=initial_pose,
-        landmark_map=landmarks.from_metadata(trial.metadata),
+        landmark_map=true_landmarks,
     )
     pipeline = Pipeline(loc, cal, mapper_config, reference_map=reference_map)
     t0 = time.perf_counter()
@@ -150,6 +156,10 @@ def replay_log(
         "runtime_s": runtime,
         "realtime_factor": duration / runtime if runtime > 0 else math.inf,
     }
+    estimated_landmarks = None
+    if true_landmarks is not None and hasattr(loc, "landmarks"):
+        estimated_landmarks = {i: mean for i, (mean, _) in loc.landmarks().items()}
+        metrics["landmark_rmse_unaligned_m"] = M.landmark_rmse(estimated_landmarks, true_landmarks)
     diagnostics = loc.diagnostics()
     if diagnostics:
         metrics["localizer_diagnostics"] = diagnostics
@@ -162,6 +172,12 @@ def replay_log(
         gt.write_tum(files["groundtruth"])
         metrics.update(M.ate(est, gt))
         metrics.update(M.rpe(est, gt))
+        if estimated_landmarks is not None:
+            metrics["landmark_rmse_m"] = M.landmark_rmse(
+                estimated_landmarks, true_landmarks, M.trajectory_alignment(est, gt)
+            )
+    if "relations" in trial.metadata and len(est) > 1:
+        metrics.update(M.relation_errors(est, np.array(trial.metadata["relations"]["rows"])))
     outlines = []
     if world is not None:
         outlines = [p for _, p in world.footprint_polygons(*MAP_BAND_M)]

@@ -79,6 +79,10 @@ def test_landmark_rmse():
     est = {1: np.array([0.3, 0.4]), 2: np.array([1.0, 1.0]), 9: np.array([0.0, 0.0])}
     assert landmark_rmse(est, truth) == pytest.approx(np.sqrt(0.25 / 2))
     assert np.isnan(landmark_rmse({}, truth))
+    # rotated by 90° about the origin and aligned back
+    rot = np.array([[0.0, -1.0], [1.0, 0.0]])
+    turned = {i: rot @ p for i, p in truth.items()}
+    assert landmark_rmse(turned, truth, (rot.T, np.zeros(2))) == pytest.approx(0.0)
 
 
 def test_relation_errors_zero_for_exact_and_known_for_scaled():
