@@ -97,6 +97,8 @@ def _print_metrics(metrics: dict, files: dict[str, Path]) -> None:
         "ate_rmse_unaligned_m",
         "rpe_trans_m",
         "final_position_error_m",
+        "landmark_rmse_m",
+        "relations_trans_mean_m",
         "map_precision",
         "phantom_area_m2",
         "braking_impulse_nms",
