@@ -308,6 +308,58 @@ def demo(
     )
 
 
+@app.command()
+@friendly
+def compare(
+    logs: Annotated[list[Path], typer.Argument(help="trial logs (.mcap)")],
+    localizers: Annotated[str, typer.Option(help="all, or names separated by commas")] = "all",
+    seeds: Annotated[int, typer.Option(help="runs of each stochastic localizer")] = 3,
+    out: Annotated[Path, typer.Option(help="output folder")] = Path("out/compare"),
+) -> None:
+    """Run localizers on logs; write results.csv, results.db, report.md; print the table."""
+    from experiments.compare import compare as run_compare
+    from experiments.compare import parse_localizers
+    from hardware.log import read_log
+
+    names = parse_localizers(localizers)
+    for log in logs:
+        read_log(log)  # fail fast on a bad file, before any run
+    if seeds < 1:
+        raise ValueError(f"--seeds must be >= 1, got {seeds}")
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        TimeElapsedColumn(),
+        console=err_console,
+        transient=True,
+    ) as bar:
+        task = bar.add_task("comparing", total=None)
+        res = run_compare(
+            logs, names, seeds, out, progress=lambda what: bar.update(task, description=what)
+        )
+    short = {
+        "ate_rmse_m": "ATE m",
+        "ate_rmse_unaligned_m": "ATE unal. m",
+        "rpe_trans_m": "RPE m",
+        "relations_trans_mean_m": "rel. m",
+        "relations_rot_mean_deg": "rel. deg",
+        "landmark_rmse_m": "landm. m",
+        "phantom_area_m2": "phantom m²",
+        "realtime_factor": "× RT",
+    }
+    shown = [k for k in short if any(s[k] is not None for s in res.summary)]
+    table = Table("log", "localizer", "runs", *[short[k] for k in shown])
+    for s in res.summary:
+        cells = []
+        for k in shown:
+            v = s[k]
+            spread = "" if v is None or s["runs"] == 1 else f"±{v[1]:.3f}"
+            cells.append("" if v is None else f"{v[0]:.3f}{spread}")
+        table.add_row(s["log"], s["localizer"], str(s["runs"]), *cells)
+    console.print(table)
+    console.print("files: " + ", ".join(str(p) for p in res.files.values()), highlight=False)
+
+
 @app.command(name="slip-push")
 @friendly
 def slip_push(

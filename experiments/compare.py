@@ -1,0 +1,198 @@
+"""Compare localizers on recorded trials: every localizer on every log, stochastic ones
+over several seeds; results as CSV, SQLite (one row per run, with its config) and a
+Markdown report with the table (mean ± std over seeds) and trajectory figures."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sqlite3
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from experiments.run import ReplayResult, replay_log
+from hardware.log import read_log
+from slam.base import LOCALIZERS
+
+COLUMNS = (
+    "log",
+    "localizer",
+    "seed",
+    "ate_rmse_m",
+    "ate_rmse_unaligned_m",
+    "rpe_trans_m",
+    "relations_trans_mean_m",
+    "relations_rot_mean_deg",
+    "landmark_rmse_m",
+    "phantom_area_m2",
+    "runtime_s",
+    "realtime_factor",
+)
+NUMERIC = COLUMNS[3:]
+
+
+def is_stochastic(localizer: str) -> bool:
+    """A localizer whose config has a `seed` is run once per seed."""
+    return any(f.name == "seed" for f in fields(LOCALIZERS.spec(localizer).config_type))
+
+
+def parse_localizers(text: str) -> list[str]:
+    names = LOCALIZERS.names()
+    if text == "all":
+        return names
+    wanted = [n.strip() for n in text.split(",") if n.strip()]
+    for n in wanted:
+        LOCALIZERS.spec(n)  # raises UnknownNameError listing the valid names
+    return wanted
+
+
+@dataclass
+class CompareResult:
+    rows: list[dict[str, Any]]
+    summary: list[dict[str, Any]]
+    files: dict[str, Path]
+
+
+def _row(log: str, localizer: str, seed: int | None, res: ReplayResult) -> dict[str, Any]:
+    m = res.metrics
+    row: dict[str, Any] = {"log": log, "localizer": localizer, "seed": "" if seed is None else seed}
+    for key in NUMERIC:
+        v = m.get(key)
+        row[key] = "" if v is None or (isinstance(v, float) and math.isnan(v)) else v
+    return row
+
+
+def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Mean and std over seeds per (log, localizer); empty where not applicable."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["log"], r["localizer"]), []).append(r)
+    out = []
+    for (log, loc), rs in groups.items():
+        s: dict[str, Any] = {"log": log, "localizer": loc, "runs": len(rs)}
+        for key in NUMERIC:
+            vals = np.array([r[key] for r in rs if r[key] != ""], dtype=float)
+            s[key] = (float(vals.mean()), float(vals.std())) if len(vals) else None
+        out.append(s)
+    return out
+
+
+def compare(
+    logs: Sequence[str | Path],
+    localizers: Sequence[str],
+    seeds: int,
+    out_dir: str | Path,
+    progress: Callable[[str], None] | None = None,
+) -> CompareResult:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.db").unlink(missing_ok=True)  # this comparison's runs only, like the CSV
+    db = sqlite3.connect(out / "results.db")
+    db.execute(
+        "CREATE TABLE runs (id INTEGER PRIMARY KEY, log TEXT, localizer TEXT, "
+        "seed INTEGER, metrics TEXT, config TEXT, " + ", ".join(f"{c} REAL" for c in NUMERIC) + ")"
+    )
+    rows: list[dict[str, Any]] = []
+    trajectories: dict[str, dict[str, np.ndarray]] = {}
+    for log_path in logs:
+        trial = read_log(log_path)
+        name = Path(log_path).stem
+        for loc in localizers:
+            spec = LOCALIZERS.spec(loc)
+            for seed in range(seeds) if is_stochastic(loc) else [None]:
+                cfg = spec.config_type() if seed is None else replace(spec.config_type(), seed=seed)
+                run_dir = out / name / loc / ("run" if seed is None else f"seed{seed}")
+                if progress is not None:
+                    progress(f"{name} · {loc}" + ("" if seed is None else f" · seed {seed}"))
+                res = replay_log(
+                    trial,
+                    run_dir,
+                    localizer=loc,
+                    localizer_config=cfg,
+                    figures=False,
+                    reference_map=False,
+                )
+                row = _row(name, loc, seed, res)
+                rows.append(row)
+                config = json.loads((run_dir / "config.json").read_text())
+                db.execute(
+                    "INSERT INTO runs (log, localizer, seed, metrics, config, "
+                    + ", ".join(NUMERIC)
+                    + ") VALUES (?, ?, ?, ?, ?, "
+                    + ", ".join("?" for _ in NUMERIC)
+                    + ")",
+                    (
+                        name,
+                        loc,
+                        seed,
+                        json.dumps(res.metrics, default=str),
+                        json.dumps(config),
+                        *[None if row[k] == "" else float(row[k]) for k in NUMERIC],
+                    ),
+                )
+                db.commit()
+                if seed in (None, 0):
+                    traj = res.pipeline.localizer.trajectory() if res.pipeline else None
+                    if traj is not None:
+                        trajectories.setdefault(name, {})[loc] = traj.poses[:, :2]
+                        gt = res.pipeline.recorded.groundtruth_trajectory()
+                        if gt is not None:
+                            trajectories[name]["ground truth"] = gt.poses[:, :2]
+    db.close()
+    files = {"results_db": out / "results.db", "results_csv": out / "results.csv"}
+    with files["results_csv"].open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    summary = summarise(rows)
+    files.update(_report(out, summary, trajectories))
+    return CompareResult(rows, summary, files)
+
+
+def _fmt(v: tuple[float, float] | None, runs: int) -> str:
+    if v is None:
+        return ""
+    return f"{v[0]:.3f}" if runs == 1 else f"{v[0]:.3f} ± {v[1]:.3f}"
+
+
+def _report(out: Path, summary, trajectories) -> dict[str, Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files: dict[str, Path] = {}
+    lines = [
+        "# Localizer comparison",
+        "",
+        "Mean ± std over seeds for stochastic localizers; empty where not applicable.",
+        "",
+        "| " + " | ".join(["log", "localizer", "runs", *NUMERIC]) + " |",
+        "|" + "---|" * (3 + len(NUMERIC)),
+    ]
+    for s in summary:
+        cells = [s["log"], s["localizer"], str(s["runs"])] + [
+            _fmt(s[k], s["runs"]) for k in NUMERIC
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    for name, trajs in trajectories.items():
+        fig, ax = plt.subplots(figsize=(6, 5))
+        for label, xy in trajs.items():
+            style = {"color": "k", "lw": 1.5} if label == "ground truth" else {"lw": 0.9}
+            ax.plot(xy[:, 0], xy[:, 1], label=label, **style)
+        ax.set_aspect("equal")
+        ax.legend(fontsize=7)
+        ax.set_title(name, fontsize=9)
+        path = out / f"{name}_trajectories.png"
+        fig.savefig(path, dpi=120, bbox_inches="tight")
+        plt.close(fig)
+        files[f"{name}_figure"] = path
+        lines += ["", f"## {name}", "", f"![trajectories]({path.name})"]
+    files["report"] = out / "report.md"
+    files["report"].write_text("\n".join(lines) + "\n")
+    return files
