@@ -35,6 +35,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from enum import StrEnum
+from functools import lru_cache
 from typing import ClassVar
 
 import numpy as np
@@ -42,11 +43,9 @@ import numpy as np
 from mapping.lattice import (
     as_points,
     bundle_rays,
-    cell_bounds,
     cell_centres,
     cells_of,
-    trace_rays_ij,
-    unique_cells,
+    trace_rays_flat,
 )
 from mapping.observation import ViewWedge, WorldObservation
 from slam.geometry import wrap_angle
@@ -194,23 +193,24 @@ class GridExtent(ABC):
     def integrate(self, obs: WorldObservation, centre_xy: np.ndarray | None = None) -> None:
         """Add one frame. `centre_xy` (default: the sensor) centres the window when rolling."""
         res = self.resolution
-        occ_cells = cells_of(obs.obstacles, res)
-        end_cells = unique_cells(cells_of(obs.ray_ends, res))
-        sensor_cell = cells_of(obs.sensor_xy[None, :], res)
-        parts = [occ_cells, end_cells, sensor_cell, *self._extra_cells(obs)]
-        lo, hi = cell_bounds(np.concatenate(parts))
+        occ = _floor_cells(obs.obstacles, res)
+        ends = _floor_cells(obs.ray_ends, res)
+        sensor = np.floor(obs.sensor_xy / res)[None]
+        box = _Box.around([occ, ends, sensor, *self._extra_cells(obs)])
         centre = obs.sensor_xy if centre_xy is None else np.asarray(centre_xy, dtype=np.float64)
-        self._ensure(lo, hi, cells_of(centre[None], res)[0])
-        # Window of this frame, clipped to the grid (which matters only after rolling).
-        lo = np.maximum(lo, self._offset)
-        hi = np.minimum(hi, self._offset + self.shape[::-1] - 1)
-        if np.any(hi < lo):
+        self._ensure(np.array(box.lo), np.array(box.hi), cells_of(centre[None], res)[0])
+        # The part of the frame's box that the grid holds (all of it unless it rolled).
+        window = box.intersection(self._box())
+        if window is None:
             return
-        frame = _Frame(self, obs, lo, hi - lo + 1, occ_cells, end_cells)
-        a = lo - self._offset
-        rows = slice(a[1], a[1] + frame.size[1])
-        cols = slice(a[0], a[0] + frame.size[0])
+        frame = _Frame(self, obs, box, window, occ, ends)
+        rows, cols = window.slices(self._box())
         self._update({k: v[rows, cols] for k, v in self._layers.items()}, frame)
+
+    def _box(self) -> _Box:
+        """The lattice cells the grid holds."""
+        (oi, oj), (ny, nx) = self._offset.tolist(), self.shape
+        return _Box(oi, oj, oi + nx - 1, oj + ny - 1)
 
     def _extra_cells(self, obs: WorldObservation) -> list[np.ndarray]:
         """Cells beyond the observation's points that the update touches (e.g. a wedge)."""
@@ -223,11 +223,11 @@ class GridExtent(ABC):
     def _ensure(self, lo: np.ndarray, hi: np.ndarray, centre: np.ndarray) -> None:
         """Grow (or roll) so that lattice cells lo..hi (inclusive) fit, if they can."""
         ny, nx = self.shape
+        if nx and ny and self._box().contains(_Box(*lo.tolist(), *hi.tolist())):
+            return  # most frames
         size = np.array([nx, ny], dtype=np.int64)
         cur_lo, cur_hi = self._offset, self._offset + size - 1
         empty = nx == 0 or ny == 0
-        if not empty and np.all(lo >= cur_lo) and np.all(hi <= cur_hi):
-            return
         need_lo = lo if empty else np.minimum(lo, cur_lo)
         need_hi = hi if empty else np.maximum(hi, cur_hi)
         pad = np.maximum(int(np.ceil(self.config.grow_chunk_m / self.resolution)), size // 4)
@@ -260,59 +260,154 @@ class GridExtent(ABC):
         self._offset = np.asarray(new_lo, dtype=np.int64).copy()
 
 
+def _floor_cells(points: np.ndarray, resolution: float) -> np.ndarray:
+    """`cells_of` as float64 (exact integers; one int conversion fewer per frame), stored
+    column by column (Fortran order), which makes per-column reductions 50× cheaper."""
+    points = as_points(points)
+    out = np.empty(points.shape, order="F")
+    np.divide(points, resolution, out=out)
+    return np.floor(out, out=out)
+
+
+@dataclass(frozen=True)
+class _Box:
+    """The lattice cells i0..i1 × j0..j1 (inclusive), as Python ints: the per-frame
+    bookkeeping of a few numbers costs less in ints than in 2-element arrays."""
+
+    i0: int
+    j0: int
+    i1: int
+    j1: int
+
+    @classmethod
+    def around(cls, parts: list[np.ndarray]) -> _Box:
+        """The box of the rows of N×2 cell arrays (integral floats or ints; not all empty)."""
+        cells = np.concatenate([p.T for p in parts], axis=1)  # (2, N): cheap reductions
+        (i0, j0), (i1, j1) = cells.min(axis=1).tolist(), cells.max(axis=1).tolist()
+        return cls(int(i0), int(j0), int(i1), int(j1))
+
+    @property
+    def lo(self) -> tuple[int, int]:
+        return self.i0, self.j0
+
+    @property
+    def hi(self) -> tuple[int, int]:
+        return self.i1, self.j1
+
+    @property
+    def width(self) -> int:
+        return self.i1 - self.i0 + 1
+
+    @property
+    def height(self) -> int:
+        return self.j1 - self.j0 + 1
+
+    def contains(self, other: _Box) -> bool:
+        return self.intersection(other) == other
+
+    def intersection(self, other: _Box) -> _Box | None:
+        i0, j0 = max(self.i0, other.i0), max(self.j0, other.j0)
+        i1, j1 = min(self.i1, other.i1), min(self.j1, other.j1)
+        return _Box(i0, j0, i1, j1) if i0 <= i1 and j0 <= j1 else None
+
+    def slices(self, outer: _Box) -> tuple[slice, slice]:
+        """(rows, cols) of this box in an [iy, ix] array covering `outer`."""
+        return (
+            slice(self.j0 - outer.j0, self.j1 - outer.j0 + 1),
+            slice(self.i0 - outer.i0, self.i1 - outer.i0 + 1),
+        )
+
+
 class _Frame:
-    """One observation rasterised into a window of the lattice (lo, size = (w, h))."""
+    """One observation rasterised onto the lattice.
+
+    Masks are built over the frame's own box of cells, which holds every cell the frame
+    touches — its points, the sensor, and every traced ray sample (a ray runs from the
+    sensor to an end cell's centre) — so no per-sample bounds checks are needed, and are
+    then cropped to the `window` that the grid holds (the whole box unless it rolled).
+    """
 
     def __init__(
         self,
         grid: GridExtent,
         obs: WorldObservation,
-        lo: np.ndarray,
-        size: np.ndarray,
-        occ_cells: np.ndarray,
-        end_cells: np.ndarray,
+        box: _Box,
+        window: _Box,
+        occ: np.ndarray,
+        ends: np.ndarray,
     ) -> None:
-        self.grid, self.obs, self.lo, self.size = grid, obs, lo, size
-        self._end_cells = end_cells
-        self.occupied = self.mask(occ_cells)
+        self.grid, self.obs, self.box, self.window = grid, obs, box, window
+        self._crop = window.slices(box)
+        self._ends = self._box_mask(ends)
+        self.occupied = self._box_mask(occ).reshape(box.height, box.width)[self._crop]
 
-    def mask(self, cells: np.ndarray) -> np.ndarray:
-        """Boolean (h, w) window with the given N×2 lattice cells set (outside ones dropped)."""
-        return self.mask_ij(cells[:, 0], cells[:, 1])
-
-    def mask_ij(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-        """`mask` for cells given as two 1-D arrays."""
-        w, h = self.size.tolist()
-        out = np.zeros(h * w, dtype=bool)
-        if len(i) == 0:
-            return out.reshape(h, w)
-        i, j = i - self.lo[0], j - self.lo[1]
-        if i.min() < 0 or j.min() < 0 or i.max() >= w or j.max() >= h:  # after rolling
-            inside = (i >= 0) & (i < w) & (j >= 0) & (j < h)
-            i, j = i[inside], j[inside]
-        j *= w
-        j += i
-        out[j] = True
-        return out.reshape(h, w)
+    def _box_mask(self, cells: np.ndarray) -> np.ndarray:
+        """Flat boolean box with the N×2 (float64 floor) cells set."""
+        flat = cells[:, 1] - float(self.box.j0)
+        flat *= self.box.width
+        flat += cells[:, 0]
+        flat -= float(self.box.i0)
+        out = np.zeros(self.box.width * self.box.height, dtype=bool)
+        out[flat.astype(np.intp)] = True
+        return out
 
     def rays(self) -> np.ndarray:
         """Cells the rays crossed or ended in (the frame's obstacle cells included)."""
-        res = self.grid.resolution
-        targets = cell_centres(self._end_cells, res)
+        res, box = self.grid.resolution, self.box
+        ids = np.flatnonzero(self._ends)  # the distinct end cells, ordered by (j, i)
+        j, i = np.divmod(ids, box.width)
+        targets = np.empty((len(ids), 2))
+        np.add(i, box.i0 + 0.5, out=targets[:, 0])  # cell_centres, in the same float ops
+        np.add(j, box.j0 + 0.5, out=targets[:, 1])
+        targets *= res
         if self.grid.config.bundle_rays:
-            targets = targets[bundle_rays(self.obs.sensor_xy, targets, res)]
-        crossed = self.mask_ij(*trace_rays_ij(self.obs.sensor_xy, targets, res))
-        return crossed | self.mask(self._end_cells)
+            targets = targets.take(bundle_rays(self.obs.sensor_xy, targets, res), axis=0)
+        crossed = self._ends.copy()
+        crossed[trace_rays_flat(self.obs.sensor_xy, targets, res, box.lo, box.width)] = True
+        return crossed.reshape(box.height, box.width)[self._crop]
 
     def wedge(self, view: ViewWedge) -> np.ndarray:
         """Cells of the window whose centres lie in the view wedge of the sensor."""
-        w, h = self.size.tolist()
-        res = self.grid.resolution
-        x = (np.arange(w) + self.lo[0] + 0.5) * res - self.obs.sensor_xy[0]
-        y = (np.arange(h) + self.lo[1] + 0.5) * res - self.obs.sensor_xy[1]
-        r = np.hypot(x[None, :], y[:, None])
-        bearing = wrap_angle(np.arctan2(y[:, None], x[None, :]) - self.obs.heading)
-        return (r >= view.r_min) & (r <= view.r_max) & (np.abs(bearing) <= view.half_fov)
+        res, win = self.grid.resolution, self.window
+        x = (np.arange(win.width) + win.i0 + 0.5) * res - self.obs.sensor_xy[0]
+        y = (np.arange(win.height) + win.j0 + 0.5) * res - self.obs.sensor_xy[1]
+        return _in_wedge(x, y, self.obs.heading, view)
+
+
+def _in_wedge_exact(x: np.ndarray, y: np.ndarray, heading: float, view: ViewWedge) -> np.ndarray:
+    """The view wedge's definition, at offsets (x, y) from the sensor (broadcast): range
+    hypot(x, y) within [r_min, r_max], bearing wrap(atan2(y, x) − heading) within ±half_fov."""
+    r = np.hypot(x, y)
+    bearing = wrap_angle(np.arctan2(y, x) - heading)
+    return (r >= view.r_min) & (r <= view.r_max) & (np.abs(bearing) <= view.half_fov)
+
+
+_WEDGE_MARGIN = 1e-9  # relative; float errors of either test are ~1e-15
+
+
+def _in_wedge(x: np.ndarray, y: np.ndarray, heading: float, view: ViewWedge) -> np.ndarray:
+    """`_in_wedge_exact(x[None, :], y[:, None], ...)`, (len(y), len(x)), 5× cheaper.
+
+    arctan2 and hypot over the whole window dominate a view-count update, so cells are
+    first sorted with cheaper arithmetic: r = √(x² + y²), and the bearing test as
+    cos(bearing) ≥ cos(half_fov), i.e. x·cos h + y·sin h ≥ r·cos(half_fov) (cos falls
+    on [0, π]). That decides every cell more than 1e-9 (relative) from the wedge's edges,
+    where both forms agree despite rounding; the few cells nearer an edge, if any, get
+    the exact test, so the result is the exact test's.
+    """
+    r = np.sqrt(np.add.outer(y * y, x * x))
+    along = np.add.outer(y * np.sin(heading), x * np.cos(heading))
+    along -= r * np.cos(view.half_fov)  # > 0: inside the bearing limits
+    tol = r * (_WEDGE_MARGIN * (1.0 + abs(heading)))
+    r_tol = _WEDGE_MARGIN * max(view.r_max, 1.0)
+    inside = (along > tol) & (r > view.r_min + r_tol) & (r < view.r_max - r_tol)
+    outside = (along < -tol) | (r < view.r_min - r_tol) | (r > view.r_max + r_tol)
+    undecided = ~(inside | outside)
+    rows = np.flatnonzero(undecided.any(axis=1))
+    if len(rows):  # same broadcast layout as the definition, row by row
+        exact = _in_wedge_exact(x[None, :], y[rows, None], heading, view)
+        inside[rows] = np.where(undecided[rows], exact, inside[rows])
+    return inside
 
 
 class OccupancyGrid(GridExtent):
@@ -345,7 +440,8 @@ class OccupancyGrid(GridExtent):
         lo = layers["log_odds"]
         occ = frame.occupied
         free = frame.rays() & ~occ
-        lo[free] = np.maximum(lo[free] + np.float32(p.l_free), np.float32(p.l_min))
+        # Most of the window is free: a dense select beats boolean indexing there.
+        lo[...] = np.where(free, np.maximum(lo + np.float32(p.l_free), np.float32(p.l_min)), lo)
         lo[occ] = np.minimum(lo[occ] + np.float32(p.l_occ), np.float32(p.l_max))
 
 
@@ -379,19 +475,28 @@ class ViewCountGrid(GridExtent):
         # Bounding box of the wedge from its arcs, sampled finely (the arcs bulge past the
         # chords by < 1 cm for any wedge) and padded by one cell.
         v = obs.view
-        angles = obs.heading + np.linspace(-v.half_fov, v.half_fov, 65)
-        radii = np.array([v.r_min, v.r_max])
-        pts = obs.sensor_xy + np.column_stack(
-            [np.outer(radii, np.cos(angles)).ravel(), np.outer(radii, np.sin(angles)).ravel()]
-        )
-        lo, hi = cell_bounds(cells_of(pts, self.resolution))
-        return [lo[None] - 1, hi[None] + 1]
+        angles = obs.heading + _arc_offsets(v.half_fov)
+        cos, sin = np.cos(angles), np.sin(angles)
+        lo, hi = [], []
+        for k, c in enumerate((cos, sin)):  # k = 0: x, 1: y
+            ends = np.concatenate([v.r_min * c, v.r_max * c])
+            ends += obs.sensor_xy[k]
+            cells = np.floor(ends / self.resolution)
+            lo.append(cells.min() - 1)
+            hi.append(cells.max() + 1)
+        return [np.array([lo, hi])]
 
     def _update(self, layers: dict[str, np.ndarray], frame: _Frame) -> None:
         occ = frame.occupied
         view = frame.rays() if frame.obs.view is None else frame.wedge(frame.obs.view)
-        layers["views"][view | occ] += 1
-        layers["hits"][occ] += 1
+        layers["views"] += view | occ  # adding booleans: no index arrays
+        layers["hits"] += occ
+
+
+@lru_cache(maxsize=8)
+def _arc_offsets(half_fov: float) -> np.ndarray:
+    """65 bearings across ±half_fov, sampling the wedge's arcs for its bounding box."""
+    return np.linspace(-half_fov, half_fov, 65)
 
 
 def make_grid(config: GridConfig | None = None) -> GridExtent:
