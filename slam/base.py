@@ -57,8 +57,7 @@ def _load_builtin() -> None:
     # Importing the modules runs their registrations.
     import slam.dead_reckoning
     import slam.ekf_slam
-    import slam.gtsam_smoother
-    import slam.particle_filter  # noqa: F401
+    import slam.gtsam_smoother  # noqa: F401
 
 
 LOCALIZERS: Registry[Localizer] = Registry("localizer", _load_builtin)
