@@ -57,6 +57,7 @@ def _load_builtin() -> None:
     # Importing the modules runs their registrations.
     import slam.dead_reckoning
     import slam.ekf_slam
+    import slam.fastslam
     import slam.gtsam_smoother  # noqa: F401
 
 
