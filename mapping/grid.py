@@ -197,14 +197,16 @@ class GridExtent(ABC):
         ends = _floor_cells(obs.ray_ends, res)
         sensor = np.floor(obs.sensor_xy / res)[None]
         box = _Box.around([occ, ends, sensor, *self._extra_cells(obs)])
-        centre = obs.sensor_xy if centre_xy is None else np.asarray(centre_xy, dtype=np.float64)
-        self._ensure(np.array(box.lo), np.array(box.hi), cells_of(centre[None], res)[0])
+        if not (self.shape[0] and self._box().contains(box)):  # most frames fit as is
+            centre = obs.sensor_xy if centre_xy is None else np.asarray(centre_xy, dtype=float)
+            self._ensure(np.array(box.lo), np.array(box.hi), cells_of(centre[None], res)[0])
         # The part of the frame's box that the grid holds (all of it unless it rolled).
-        window = box.intersection(self._box())
+        grid_box = self._box()
+        window = box.intersection(grid_box)
         if window is None:
             return
         frame = _Frame(self, obs, box, window, occ, ends)
-        rows, cols = window.slices(self._box())
+        rows, cols = window.slices(grid_box)
         self._update({k: v[rows, cols] for k, v in self._layers.items()}, frame)
 
     def _box(self) -> _Box:
@@ -223,11 +225,11 @@ class GridExtent(ABC):
     def _ensure(self, lo: np.ndarray, hi: np.ndarray, centre: np.ndarray) -> None:
         """Grow (or roll) so that lattice cells lo..hi (inclusive) fit, if they can."""
         ny, nx = self.shape
-        if nx and ny and self._box().contains(_Box(*lo.tolist(), *hi.tolist())):
-            return  # most frames
         size = np.array([nx, ny], dtype=np.int64)
         cur_lo, cur_hi = self._offset, self._offset + size - 1
         empty = nx == 0 or ny == 0
+        if not empty and np.all(lo >= cur_lo) and np.all(hi <= cur_hi):
+            return
         need_lo = lo if empty else np.minimum(lo, cur_lo)
         need_hi = hi if empty else np.maximum(hi, cur_hi)
         pad = np.maximum(int(np.ceil(self.config.grow_chunk_m / self.resolution)), size // 4)

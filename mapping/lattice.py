@@ -106,10 +106,11 @@ def _longest_per_bin(bins: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Per distinct bin (ascending), the index of its largest r (the last one of ties).
 
     Bins are a bearing's fraction of a full turn, so there are only a few times more of
-    them than rays: per-bin maxima by `np.maximum.at` cost O(N + bins), a third of a sort.
+    them than rays: per-bin maxima by `np.maximum.at` cost O(N + bins), a third of a sort
+    of a depth frame's ~1000 end cells (a sort wins for a few dozen).
     """
     n_bins = int(bins.max()) + 1  # bins >= 0
-    if n_bins > _BITMAP_DENSITY_LIMIT * len(bins) + 4096:
+    if len(bins) < 64 or n_bins > _BITMAP_DENSITY_LIMIT * len(bins) + 4096:
         order = np.lexsort((r, bins))
         sorted_bins = bins[order]
         return order[np.append(sorted_bins[1:] != sorted_bins[:-1], True)]
@@ -156,10 +157,7 @@ def trace_rays_flat(
     return y.astype(np.intp).ravel()
 
 
-_FRACTION_ROWS = 512  # rays up to 256 cells (12.8 m at 5 cm) use the cached table
-
-
-@lru_cache(maxsize=4)
+@lru_cache(maxsize=8)
 def _fraction_table(rows: int) -> np.ndarray:
     """(rows, rows) float64: row n−1 holds min(k, n−1)/n for k = 0..rows−1."""
     n = np.arange(1.0, rows + 1.0)[:, None]
@@ -170,10 +168,13 @@ def _fraction_table(rows: int) -> np.ndarray:
 
 def _fractions(n_max: int) -> np.ndarray:
     """(n_max, n_max) view of the sample fractions of rays of n = 1..n_max samples: row n−1
-    holds k/n for k < n and then repeats (n−1)/n, the ray's last sample."""
-    if n_max <= _FRACTION_ROWS:
-        return _fraction_table(_FRACTION_ROWS)[:n_max, :n_max]
-    return _fraction_table.__wrapped__(n_max)
+    holds k/n for k < n and then repeats (n−1)/n, the ray's last sample.
+
+    Tables are cached by n_max rounded up to 32: ~200 kB for a depth frame's rays, which
+    stays in cache, unlike one large table. Longer rays (> 25 m at 5 cm) are uncached."""
+    if n_max > 512:
+        return _fraction_table.__wrapped__(n_max)
+    return _fraction_table(-(-n_max // 32) * 32)[:n_max, :n_max]
 
 
 def _ray_samples(
@@ -202,7 +203,7 @@ def _ray_samples(
     steps = np.maximum(np.ceil(2.0 * np.hypot(dx, dy)), 1.0)  # integral float64
     n_max, total = int(steps.max()), int(steps.sum())
     if len(steps) * n_max <= 2 * total:
-        frac = _fractions(n_max).take(steps.astype(np.intp) - 1, axis=0)
+        frac = _fractions(n_max)[steps.astype(np.intp) - 1]  # not .take: it copies the view
         dx, dy = dx[:, None], dy[:, None]
     else:
         counts = steps.astype(np.int64)
