@@ -69,6 +69,7 @@ class Pipeline:
         self.reference = OccupancyMapper(calibration, mapper_config) if reference_map else None
         self.recorded = Recorded()
         self._latest_truth: GroundTruthPose | None = None
+        localizer.attach_map(self.mapper)
         # A smoother revises past poses: keep its frames (keyed by time) to rebuild the map.
         self._keep_frames = localizer.revises_past
         self._built_revision = localizer.revision

@@ -52,13 +52,18 @@ class Localizer(ABC):
         """What the localizer wants a researcher to know (counts, fallbacks); may be empty."""
         return {}
 
+    def attach_map(self, source: Any) -> None:  # noqa: B027 - optional hook, no-op default
+        """The pipeline hands over the shared occupancy mapper; localizers that score
+        frames against the map (particle-filter) keep it, the others ignore it."""
+
 
 def _load_builtin() -> None:
     # Importing the modules runs their registrations.
     import slam.dead_reckoning
     import slam.ekf_slam
     import slam.fastslam
-    import slam.gtsam_smoother  # noqa: F401
+    import slam.gtsam_smoother
+    import slam.particle_filter  # noqa: F401
 
 
 LOCALIZERS: Registry[Localizer] = Registry("localizer", _load_builtin)

@@ -1,0 +1,436 @@
+"""Monte Carlo localization: a particle filter over the walker pose, vectorised over particles.
+
+Each particle is a pose (x, y, θ) with a log-weight. Odometry increments predict: every
+particle moves along the exact arc of its own (ds, dθ), drawn from N(increment,
+increment.cov) (`slam.motion`; brake commands feed its brake-aware option). Two
+measurement models weight the particles:
+
+- landmarks with known IDs (tags seen by the camera, range-bearing datasets) against a
+  known landmark map {id: (x, y)}: Gaussian range-bearing likelihood, range σ =
+  range_sigma_m + range_sigma_frac·r, bearing σ = bearing_sigma_rad (difference wrapped);
+  IDs not in the map are skipped and counted;
+- depth frames (or laser scans) against an occupancy grid (a likelihood field, Thrun et
+  al., Probabilistic Robotics §6.4): a distance transform of the grid's occupied surface
+  cells gives each cell p(d) = z_hit·N(d; 0, σ_hit) + z_rand/max_range; up to max_beams of
+  the frame's obstacle points that land in mapped cells are placed at every particle and
+  their log p summed, times beam_weight (< 1: neighbouring points are correlated). The
+  grid comes from `map_source` (`ParticleFilter.attach_map`), normally the pipeline's
+  shared mapper; the pipeline feeds the localizer before the mapper, so a frame is scored
+  against the map without itself. Against a map from elsewhere (e.g. mapped at known
+  poses) this localises to a few centimetres; against the shared map, which this
+  filter's own estimates build, it drifts (frame-to-recent-map errors accumulate), so
+  `use_scans` is off by default.
+
+Weights live in log space, normalised with logsumexp; systematic resampling (as
+filterpy.monte_carlo.systematic_resample, vectorised and drawing from the filter's own
+generator) runs when N_eff = 1/Σw² falls below resample_threshold·N. The estimate is the
+weighted mean (circular mean for θ) with the weighted covariance; the trajectory is the
+estimate after every odometry message (a filter does not revise the past).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.ndimage import binary_erosion, distance_transform_edt
+from scipy.special import logsumexp
+
+from hardware.calibration import WalkerCalibration
+from hardware.messages import DepthFrame, LaserScan, Message, RangeBearing, TagDetections
+from mapping.depth_points import DepthConfig, project_depth_frame
+from mapping.scan_points import ScanConfig, scan_to_observation
+from slam.base import Localizer, PoseEstimate, register
+from slam.geometry import wrap_angle
+from slam.measurement import (
+    LandmarkObservation,
+    range_bearing,
+    range_bearing_observation,
+    tag_observations,
+)
+from slam.motion import Increment, MotionNoise, OdometryModel, apply_increment
+from slam.trajectory import Trajectory
+
+ODOMETRY_ONLY_NOTE = "no landmark observations and no map: odometry only"
+# The likelihood field covers the map within max_range_m + this of the walker when it is
+# computed: room for the walker to move until the next refresh, and for the camera's
+# offset from the walker origin.
+FIELD_MARGIN_M = 1.5
+
+
+@dataclass(frozen=True)
+class ParticleFilterConfig:
+    """Particle filter (Monte Carlo localization) settings.
+
+    initial_pose: (x, y, θ) at the first message (defines the map frame).
+    initial_sigma: (σx [m], σy [m], σθ [rad]) of the initial particle cloud around it
+        (0: the start is known exactly, as it is when it defines the map frame).
+    n_particles: number of particles.
+    noise: odometry noise the particles are drawn with (slam.motion.MotionNoise).
+    range_sigma_m + range_sigma_frac·r, bearing_sigma_rad: landmark range-bearing noise
+        (as EkfSlamConfig: they fit the simulated tag camera and MRCLAM's barcodes).
+    landmark_map: known landmarks {id: (x, y)}; filled from the trial log by
+        `slam.base.create(..., landmark_map=...)`; None: landmarks are not used.
+    use_scans: weight by depth frames / laser scans against the attached occupancy map
+        (`ParticleFilter.attach_map`). Off by default: against the shared map, which is
+        built at this filter's own estimates, each frame's small matching error becomes
+        part of the map the next frame is matched to, and on the simulated course that
+        drifts more than the odometry does (see tests/slam/test_particle_filter.py).
+    sigma_hit_m: σ of the likelihood field's Gaussian around occupied cells.
+    z_hit, z_rand: weights of the field's Gaussian and of a uniform over max_range_m
+        (z_rand keeps one stray point from vetoing a particle).
+    max_beams: obstacle points scored per frame, subsampled at random (seeded).
+    max_range_m: points farther than this from the sensor are not scored.
+    beam_weight: exponent of each point's likelihood (< 1: neighbouring points are
+        correlated). 0.3 makes the spread of one frame's likelihood about match the
+        scatter of its best pose on the simulated course (60 points: σθ ≈ 0.85° at 1 vs
+        1.4° measured).
+    surfaces_only: measure distances to the surface cells of occupied regions (occupied
+        cells next to non-occupied ones), not to their filled insides.
+    map_refresh_s: recompute the distance transform when the one in use is this old
+        (message time); the map changes a little with every frame.
+    min_map_cells: score frames only once the map has at least this many occupied cells.
+    min_points: score a frame only when at least this many of its points land in mapped
+        cells (known to the grid) at the mean pose; only those points are scored.
+    scan_every_m, scan_every_rad: score a frame only once the odometry has moved this far
+        or turned this much since the last scored frame (as AMCL's update_min_d/a):
+        consecutive frames repeat the same evidence; 0, 0: every frame.
+    seed: every random draw comes from numpy.random.default_rng(seed).
+    resample_threshold: resample when N_eff < resample_threshold·n_particles.
+    """
+
+    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    initial_sigma: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    n_particles: int = 500
+    noise: MotionNoise = field(default_factory=MotionNoise)
+    range_sigma_m: float = 0.05
+    range_sigma_frac: float = 0.02
+    bearing_sigma_rad: float = 0.03
+    landmark_map: dict[int, np.ndarray] | None = None
+    use_scans: bool = False
+    sigma_hit_m: float = 0.1
+    z_hit: float = 0.9
+    z_rand: float = 0.1
+    max_beams: int = 60
+    max_range_m: float = 3.5
+    beam_weight: float = 0.3
+    surfaces_only: bool = True
+    map_refresh_s: float = 0.5
+    min_map_cells: int = 20
+    min_points: int = 10
+    scan_every_m: float = 0.2
+    scan_every_rad: float = 0.2
+    seed: int = 0
+    resample_threshold: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.n_particles < 1:
+            raise ValueError(f"n_particles must be >= 1, got {self.n_particles}")
+        if len(self.initial_sigma) != 3 or min(self.initial_sigma) < 0:
+            raise ValueError(f"initial_sigma must be three values >= 0, got {self.initial_sigma}")
+        if not 0.0 <= self.resample_threshold <= 1.0:
+            raise ValueError(f"resample_threshold must be in [0, 1], got {self.resample_threshold}")
+        if self.sigma_hit_m <= 0 or self.max_range_m <= 0 or self.max_beams < 1:
+            raise ValueError("sigma_hit_m and max_range_m must be > 0, max_beams >= 1")
+        if self.z_hit < 0 or self.z_rand <= 0:
+            raise ValueError("need z_hit >= 0 and z_rand > 0 (the field's floor)")
+        if self.map_refresh_s < 0 or self.scan_every_m < 0 or self.scan_every_rad < 0:
+            raise ValueError("map_refresh_s, scan_every_m and scan_every_rad must be >= 0")
+
+
+def systematic_resample(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Indices drawn by systematic resampling: one offset u ~ U[0, 1), positions
+    (u + k)/N, index = the first j with cumsum(w)[j] > position. The algorithm of
+    filterpy.monte_carlo.systematic_resample without its Python loop, drawing u from
+    `rng` (filterpy draws from numpy's global generator)."""
+    n = len(weights)
+    cumulative = np.cumsum(weights)
+    cumulative[-1] = 1.0  # no index past the end from rounding
+    positions = (rng.random() + np.arange(n)) / n
+    return np.searchsorted(cumulative, positions, side="right")
+
+
+def _cholesky_2x2(cov: np.ndarray) -> tuple[float, float, float]:
+    """(l00, l10, l11) of the lower Cholesky factor of a 2×2 PSD matrix; zero rows allowed
+    (no motion, no noise)."""
+    a, b, c = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
+    l00 = math.sqrt(max(a, 0.0))
+    l10 = b / l00 if l00 > 0.0 else 0.0
+    return l00, l10, math.sqrt(max(c - l10 * l10, 0.0))
+
+
+@dataclass(frozen=True, eq=False)
+class _Field:
+    """Per-cell log-likelihood of an obstacle point and whether the grid knows the cell,
+    flattened, each with a last entry for points outside the grid; the grid's origin,
+    resolution and shape when it was made."""
+
+    log_p: np.ndarray
+    known: np.ndarray
+    origin: tuple[float, float]
+    resolution: float
+    shape: tuple[int, int]
+
+
+class ParticleFilter(Localizer):
+    """Monte Carlo localization (see the module docstring).
+
+    map_source: the occupancy map the scan likelihood scores frames against — an
+    `OccupancyMapper` (its `.grid` is read) or a grid itself; None: frames are not used.
+    Set it with `attach_map` (the pipeline does, for its shared mapper).
+    """
+
+    def __init__(self, config: ParticleFilterConfig, calibration: WalkerCalibration) -> None:
+        self.config = config
+        self.calibration = calibration
+        self.odometry = OdometryModel(calibration, config.noise)
+        self.rng = np.random.default_rng(config.seed)
+        self.map_source: Any = None
+        n = config.n_particles
+        self.particles = np.array(config.initial_pose, dtype=float) + self.rng.standard_normal(
+            (n, 3)
+        ) * np.array(config.initial_sigma, dtype=float)
+        self.particles[:, 2] = wrap_angle(self.particles[:, 2])
+        self.log_weights = np.full(n, -math.log(n))
+        self._weights = np.full(n, 1.0 / n)
+        lm = config.landmark_map or {}
+        self._landmark_index = {int(k): i for i, k in enumerate(lm)}
+        self._landmarks = np.array([np.asarray(v, dtype=float)[:2] for v in lm.values()])
+        self._landmarks = self._landmarks.reshape(-1, 2)
+        self._field: _Field | None = None
+        self._field_t = -math.inf  # message time the field was computed at
+        self._moved = (math.inf, math.inf)  # odometry (|ds|, |dθ|) since the last scored frame
+        self.counts: dict[str, Any] = {
+            "landmark_updates": 0,
+            "landmark_observations": 0,
+            "unknown_ids": 0,
+            "scan_updates": 0,
+            "resamples": 0,
+            "n_eff_min": float(n),
+        }
+        self._t: float | None = None
+        self._times: list[float] = []
+        self._poses: list[np.ndarray] = []
+
+    # -- the map the scan likelihood uses ------------------------------------------------
+    def attach_map(self, source: Any) -> None:
+        """Score depth frames / laser scans against `source`: an OccupancyMapper (its
+        `.grid` is read at every frame, so the map may grow) or a grid with `occupied()`,
+        `origin`, `resolution` and `shape`. None detaches."""
+        self.map_source = source
+        self._field, self._field_t = None, -math.inf
+
+    def _grid(self) -> Any:
+        src = self.map_source
+        return None if src is None else getattr(src, "grid", src)
+
+    # -- inputs ---------------------------------------------------------------------------
+    def process(self, msg: Message) -> None:
+        inc = self.odometry.increment(msg)
+        if inc is not None:
+            self._predict(inc)
+            self._record(msg.t)
+        elif isinstance(msg, TagDetections):
+            if msg.detections:
+                self._observe_landmarks(tag_observations(msg, self.calibration))
+        elif isinstance(msg, RangeBearing):
+            self._observe_landmarks(range_bearing_observation(msg))
+        elif isinstance(msg, DepthFrame | LaserScan):
+            self._observe_frame(msg)
+        if not self._times and self.odometry.has_odometry:
+            self._record(msg.t)
+
+    def _predict(self, inc: Increment) -> None:
+        l00, l10, l11 = _cholesky_2x2(inc.cov)
+        z = self.rng.standard_normal((2, len(self.particles)))
+        ds = inc.ds + l00 * z[0]
+        dth = inc.dtheta + l10 * z[0] + l11 * z[1]
+        self.particles = apply_increment(self.particles, ds, dth)
+        self._moved = (self._moved[0] + abs(inc.ds), self._moved[1] + abs(inc.dtheta))
+
+    def _observe_landmarks(self, obs: LandmarkObservation) -> None:
+        if not len(obs):
+            return
+        known = [self._landmark_index.get(int(i)) for i in obs.ids]
+        rows = [k for k, j in enumerate(known) if j is not None]
+        self.counts["unknown_ids"] += len(known) - len(rows)
+        if not rows:
+            return
+        z = obs.z[rows]  # (M, 2)
+        lm = self._landmarks[[known[k] for k in rows]]  # (M, 2)
+        c = self.config
+        sr = c.range_sigma_m + c.range_sigma_frac * z[:, 0]  # (M,)
+        zhat = range_bearing(self.particles[:, None, :], lm[None, :, :])  # (N, M, 2)
+        dr = (z[None, :, 0] - zhat[..., 0]) / sr
+        db = wrap_angle(z[None, :, 1] - zhat[..., 1]) / c.bearing_sigma_rad
+        self._update(-0.5 * np.sum(dr * dr + db * db, axis=1), obs.t)
+        self.counts["landmark_updates"] += 1
+        self.counts["landmark_observations"] += len(rows)
+
+    def _observe_frame(self, msg: DepthFrame | LaserScan) -> None:
+        c = self.config
+        if not c.use_scans or self.map_source is None:
+            return
+        if self._moved[0] < c.scan_every_m and self._moved[1] < c.scan_every_rad:
+            return
+        if self._field is None or msg.t - self._field_t >= c.map_refresh_s:
+            self._field = self._likelihood_field(self._grid(), self._mean())
+            self._field_t = msg.t
+        f = self._field
+        if f is None:
+            return  # the map is still (nearly) empty
+        points = self._frame_points(msg)
+        # Only the points that land in mapped cells at the mean pose are scored, for every
+        # particle alike: a point in unmapped space says nothing, and scoring it would
+        # favour the particles that pull the frame's new parts onto what is already mapped.
+        points = points[f.known[self._cells(self._mean()[None], points, f)[0]]]
+        if len(points) < c.min_points:
+            return
+        log_p = f.log_p[self._cells(self.particles, points, f)].sum(axis=1)
+        self._update(c.beam_weight * log_p, msg.t)
+        self._moved = (0.0, 0.0)
+        self.counts["scan_updates"] += 1
+
+    def _frame_points(self, msg: DepthFrame | LaserScan) -> np.ndarray:
+        """Up to max_beams obstacle points (K×2, walker frame) of a frame, within range,
+        projected as the map source's mapper projects them (its depth / scan config)."""
+        mapper_cfg = getattr(self.map_source, "config", None)
+        if isinstance(msg, DepthFrame):
+            depth_cfg = getattr(mapper_cfg, "depth", None) or DepthConfig()
+            obs = project_depth_frame(msg, self.calibration, depth_cfg)
+        else:
+            scan_cfg = getattr(mapper_cfg, "scan", None) or ScanConfig()
+            obs = scan_to_observation(msg, (0.0, 0.0, 0.0), scan_cfg)
+        pts = np.asarray(obs.obstacles, dtype=float)
+        rel = pts - obs.sensor_xy
+        pts = pts[np.einsum("ij,ij->i", rel, rel) <= self.config.max_range_m**2]
+        k = self.config.max_beams
+        if len(pts) > k:
+            pts = pts[np.sort(self.rng.choice(len(pts), size=k, replace=False))]
+        return pts
+
+    def _likelihood_field(self, grid: Any, centre: np.ndarray) -> _Field | None:
+        """The field of the part of `grid` within FIELD_MARGIN_M + max_range_m of `centre`
+        (all a frame scored before the next refresh can reach), or None when that part
+        has fewer than min_map_cells occupied cells."""
+        c = self.config
+        occupied = np.asarray(grid.occupied())
+        ny, nx = occupied.shape
+        res = float(grid.resolution)
+        reach = c.max_range_m + FIELD_MARGIN_M
+        ox, oy = grid.origin
+        ix0, ix1 = (
+            int(np.clip(math.floor((centre[0] + d - ox) / res), 0, nx)) for d in (-reach, reach)
+        )
+        iy0, iy1 = (
+            int(np.clip(math.floor((centre[1] + d - oy) / res), 0, ny)) for d in (-reach, reach)
+        )
+        window = (slice(iy0, iy1 + 1), slice(ix0, ix1 + 1))
+        occupied = occupied[window]
+        if occupied.size == 0 or np.count_nonzero(occupied) < c.min_map_cells:
+            return None
+        if c.surfaces_only:
+            # A depth or laser point lies on an obstacle's surface, not inside it: measure
+            # the distance to the occupied cells that border non-occupied ones. (Scored
+            # against filled obstacles, e.g. box tops seen from above, a point pushed into
+            # an obstacle costs nothing and one pulled out costs, a bias.)
+            occupied = occupied & ~binary_erosion(occupied, border_value=True)
+        dist = distance_transform_edt(~occupied) * res
+        p_hit = c.z_hit / (math.sqrt(2.0 * math.pi) * c.sigma_hit_m)
+        p_rand = c.z_rand / c.max_range_m
+        log_p = np.log(p_hit * np.exp(-0.5 * (dist / c.sigma_hit_m) ** 2) + p_rand)
+        flat = np.append(log_p.ravel(), math.log(p_rand))  # last: outside the window
+        known = np.asarray(grid.known())[window] if hasattr(grid, "known") else None
+        known = np.ones(occupied.shape, dtype=bool) if known is None else known
+        return _Field(
+            flat,
+            np.append(known.ravel(), False),
+            (ox + ix0 * res, oy + iy0 * res),
+            res,
+            occupied.shape,
+        )
+
+    def _cells(self, poses: np.ndarray, points: np.ndarray, f: _Field) -> np.ndarray:
+        """Flat field indices (N, K) of K walker-frame points placed at N poses."""
+        p = poses
+        c, s = np.cos(p[:, 2:3]), np.sin(p[:, 2:3])
+        px, py = points[None, :, 0], points[None, :, 1]
+        inv = 1.0 / f.resolution
+        fx = (p[:, 0:1] + c * px - s * py - f.origin[0]) * inv  # (N, K), in cells
+        fy = (p[:, 1:2] + s * px + c * py - f.origin[1]) * inv
+        ix = np.floor(fx).astype(np.intp)
+        iy = np.floor(fy).astype(np.intp)
+        ny, nx = f.shape
+        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        return np.where(inside, iy * nx + ix, ny * nx)
+
+    def _update(self, log_likelihood: np.ndarray, t: float) -> None:
+        """Add per-particle log-likelihoods, normalise, resample when N_eff is low; the
+        pose recorded at time t (if any) becomes the updated estimate."""
+        lw = self.log_weights + log_likelihood
+        lw -= logsumexp(lw)
+        w = np.exp(lw)
+        n = len(w)
+        n_eff = 1.0 / float(np.dot(w, w))
+        self.counts["n_eff_min"] = min(self.counts["n_eff_min"], n_eff)
+        if n_eff < self.config.resample_threshold * n:
+            idx = systematic_resample(w, self.rng)
+            self.particles = self.particles[idx]
+            lw = np.full(n, -math.log(n))
+            w = np.full(n, 1.0 / n)
+            self.counts["resamples"] += 1
+        self.log_weights, self._weights = lw, w
+        if self._times and self._times[-1] == t:
+            self._poses[-1] = self._mean()
+
+    @property
+    def weights(self) -> np.ndarray:
+        """Normalised particle weights (N,)."""
+        return self._weights.copy()
+
+    @property
+    def n_eff(self) -> float:
+        """Effective sample size 1/Σw²."""
+        return 1.0 / float(np.dot(self._weights, self._weights))
+
+    # -- outputs -------------------------------------------------------------------------
+    def _mean(self) -> np.ndarray:
+        w, p = self._weights, self.particles
+        th = math.atan2(float(w @ np.sin(p[:, 2])), float(w @ np.cos(p[:, 2])))
+        return np.array([float(w @ p[:, 0]), float(w @ p[:, 1]), th])
+
+    def _record(self, t: float) -> None:
+        if self._times and t <= self._times[-1]:
+            if t == self._times[-1]:
+                self._poses[-1] = self._mean()
+            return
+        self._t = t
+        self._times.append(t)
+        self._poses.append(self._mean())
+
+    def estimate(self) -> PoseEstimate:
+        t = self._t if self._t is not None else float("nan")
+        mean = self._mean()
+        d = self.particles - mean
+        d[:, 2] = wrap_angle(d[:, 2])
+        cov = (d * self._weights[:, None]).T @ d
+        return PoseEstimate(t, mean, 0.5 * (cov + cov.T))
+
+    def trajectory(self) -> Trajectory:
+        return Trajectory(np.array(self._times), np.array(self._poses).reshape(-1, 3))
+
+    def diagnostics(self) -> dict:
+        notes = dict(self.counts)
+        notes["particles"] = len(self.particles)
+        if self.counts["landmark_observations"] == 0 and self.counts["scan_updates"] == 0:
+            notes["note"] = ODOMETRY_ONLY_NOTE
+        return notes
+
+
+register(
+    "particle-filter",
+    ParticleFilterConfig,
+    "Monte Carlo localization: known landmark map and/or a likelihood field of the shared map",
+)(ParticleFilter)

@@ -1,0 +1,299 @@
+"""Particle filter (Monte Carlo localization): seeded, falls back to odometry, counts what
+it cannot use, resamples on degeneracy, beats dead reckoning with a known tag map, and
+localises by depth frames against a map (see the xfail for a map built by itself)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from experiments.metrics import ate
+from experiments.pipeline import Pipeline
+from hardware.calibration import WalkerCalibration
+from hardware.log import read_log
+from hardware.messages import (
+    DepthFrame,
+    EncoderTicks,
+    GroundTruthPose,
+    LaserScan,
+    RangeBearing,
+    TagDetection,
+    TagDetections,
+)
+from mapping.mapper import OccupancyMapper
+from slam import landmarks
+from slam.base import create
+from slam.dead_reckoning import DeadReckoningConfig
+from slam.motion import MotionNoise
+from slam.particle_filter import (
+    ODOMETRY_ONLY_NOTE,
+    ParticleFilter,
+    ParticleFilterConfig,
+    systematic_resample,
+)
+from slam.trajectory import Trajectory
+
+CAL = WalkerCalibration()
+
+
+def arc_ticks(n: int, left: int = 20, right: int = 24, dt: float = 0.02) -> list[EncoderTicks]:
+    """Cumulative ticks of a gentle left arc, one message every dt."""
+    return [EncoderTicks(dt * k, left * k, right * k) for k in range(n + 1)]
+
+
+def test_registered_and_create_fills_the_landmark_map():
+    lm = {3: np.array([1.0, 2.0])}
+    pf = create("particle-filter", CAL, initial_pose=(1.0, 2.0, 0.5), landmark_map=lm)
+    assert isinstance(pf, ParticleFilter)
+    assert pf.config.landmark_map is lm
+    assert pf.config.initial_pose == (1.0, 2.0, 0.5)
+    assert np.allclose(pf.particles, [1.0, 2.0, 0.5])  # initial_sigma 0: the start is known
+    with pytest.raises(ValueError, match="n_particles"):
+        ParticleFilterConfig(n_particles=0)
+
+
+def _run_synthetic(seed: int) -> ParticleFilter:
+    cfg = ParticleFilterConfig(
+        n_particles=200, seed=seed, initial_sigma=(0.1, 0.1, 0.05), landmark_map={1: [3.0, 1.0]}
+    )
+    pf = ParticleFilter(cfg, CAL)
+    for k, m in enumerate(arc_ticks(60)):
+        pf.process(m)
+        if k % 5 == 0:  # landmark 1 seen from roughly where odometry says the walker is
+            pose = pf.estimate().pose
+            d = np.array([3.0, 1.0]) - pose[:2]
+            pf.process(RangeBearing(m.t, 1, float(np.hypot(*d)) + 0.02, 0.0))
+    return pf
+
+
+def test_same_seed_same_result_different_seed_different_particles():
+    a, b, c = _run_synthetic(0), _run_synthetic(0), _run_synthetic(1)
+    assert np.array_equal(a.particles, b.particles)
+    assert np.array_equal(a.trajectory().poses, b.trajectory().poses)
+    assert a.diagnostics() == b.diagnostics()
+    assert not np.allclose(a.particles, c.particles)
+
+
+class _FixedOffset:
+    """A generator stand-in whose random() returns a given number."""
+
+    def __init__(self, u: float) -> None:
+        self.u = u
+
+    def random(self) -> float:
+        return self.u
+
+
+def test_systematic_resample_is_filterpys_algorithm(monkeypatch):
+    import filterpy.monte_carlo.resampling as fp
+
+    w = np.random.default_rng(4).dirichlet(np.full(300, 0.3))
+    u = 0.637
+    # filterpy draws its offset from numpy's global generator: give both the same offset
+    monkeypatch.setattr(fp, "random", lambda: u)
+    assert np.array_equal(systematic_resample(w, _FixedOffset(u)), fp.systematic_resample(w))
+    assert np.array_equal(
+        systematic_resample(w, np.random.default_rng(3)),
+        systematic_resample(w, np.random.default_rng(3)),
+    )
+
+
+def test_without_observations_it_follows_odometry_and_says_so():
+    # Low noise, so that the cloud stays nearly Gaussian: then its mean is the odometry's
+    # pose and its spread the odometry's covariance, up to sampling error.
+    noise = MotionNoise(wheel_m=1e-4)
+    pf = create("particle-filter", CAL, ParticleFilterConfig(noise=noise))
+    dr = create("dead-reckoning", CAL, DeadReckoningConfig(noise=noise))
+    for m in arc_ticks(100, left=10, right=12):
+        pf.process(m)
+        dr.process(m)
+    est, ref = pf.estimate(), dr.estimate()
+    sigma = np.sqrt(np.diag(ref.covariance))
+    assert np.all(np.abs(est.pose - ref.pose) < 0.2 * sigma)  # 0.2σ ≈ 4.5 standard errors
+    ratio = np.diag(est.covariance) / np.diag(ref.covariance)
+    assert np.all(np.abs(ratio - 1) < 0.25), ratio  # sampling error of a variance ~ √(2/n)
+    assert len(pf.trajectory()) == len(dr.trajectory())
+    d = pf.diagnostics()
+    assert d["note"] == ODOMETRY_ONLY_NOTE
+    assert d["resamples"] == 0 and d["landmark_observations"] == 0 and d["scan_updates"] == 0
+
+
+def test_unknown_landmark_ids_are_counted_not_used():
+    pf = ParticleFilter(
+        ParticleFilterConfig(
+            n_particles=100, initial_sigma=(0.2, 0.2, 0.1), landmark_map={7: (2, 0)}
+        ),
+        CAL,
+    )
+    pf.process(EncoderTicks(0.0, 0, 0))
+    before = pf.particles.copy()
+    pf.process(RangeBearing(0.0, 99, 2.0, 0.0))  # not in the map
+    pf.process(RangeBearing(0.0, -1, 1.0, 0.3))  # no ID
+    cam_T_tag = np.eye(4)
+    cam_T_tag[2, 3] = 2.0  # 2 m in front of the tag camera
+    pf.process(TagDetections(0.0, (TagDetection(42, cam_T_tag, np.zeros((4, 2))),)))
+    assert np.array_equal(pf.particles, before)
+    assert np.allclose(pf.weights, 1.0 / 100)
+    d = pf.diagnostics()
+    assert d["unknown_ids"] == 3 and d["landmark_observations"] == 0
+    assert d["note"] == ODOMETRY_ONLY_NOTE
+    pf.process(RangeBearing(0.0, 7, 2.0, 0.0))  # a known one is used
+    d = pf.diagnostics()
+    assert d["landmark_observations"] == 1 and "note" not in d
+
+
+def test_resamples_when_the_weights_degenerate():
+    cfg = ParticleFilterConfig(
+        n_particles=400, initial_sigma=(0.5, 0.5, 0.2), landmark_map={1: (3.0, 0.0), 2: (0.0, 3.0)}
+    )
+    pf = ParticleFilter(cfg, CAL)
+    pf.process(EncoderTicks(0.0, 0, 0))
+    spread = pf.particles[:, :2].std(axis=0)
+    assert pf.n_eff == pytest.approx(400)
+    # at the true pose (0, 0, 0) both landmarks are 3 m away, ahead and to the left
+    pf.process(RangeBearing(0.0, 1, 3.0, 0.0))
+    pf.process(RangeBearing(0.0, 2, 3.0, math.pi / 2))
+    d = pf.diagnostics()
+    assert d["resamples"] >= 1
+    assert d["n_eff_min"] < cfg.resample_threshold * cfg.n_particles
+    assert pf.n_eff == pytest.approx(400)  # resampled: equal weights again
+    assert np.all(pf.particles[:, :2].std(axis=0) < 0.5 * spread)
+    assert np.hypot(*pf.estimate().pose[:2]) < 0.15
+
+
+def test_no_resampling_while_the_weights_stay_even():
+    pf = ParticleFilter(ParticleFilterConfig(n_particles=100, landmark_map={1: (3.0, 0.0)}), CAL)
+    pf.process(EncoderTicks(0.0, 0, 0))
+    pf.process(RangeBearing(0.0, 1, 3.1, 0.0))  # all particles alike: every weight the same
+    assert pf.diagnostics()["resamples"] == 0
+    assert pf.n_eff == pytest.approx(100)
+
+
+def _box_room_scan(pose, t, room=(-2.0, 4.0, -2.5, 3.0), n=180, range_max=8.0) -> LaserScan:
+    """A 360° laser scan from `pose` inside a rectangular room (ray to the nearest wall)."""
+    x, y, th = pose
+    angles = -math.pi + 2 * math.pi * np.arange(n) / n
+    c, s = np.cos(th + angles), np.sin(th + angles)
+    with np.errstate(divide="ignore"):
+        tx = np.where(c > 0, (room[1] - x) / c, (room[0] - x) / c)
+        ty = np.where(s > 0, (room[3] - y) / s, (room[2] - y) / s)
+    return LaserScan(t, -math.pi, 2 * math.pi / n, np.minimum(tx, ty), range_max)
+
+
+def test_scan_likelihood_finds_the_pose_in_a_mapped_room():
+    truth = np.array([0.3, -0.2, 0.4])
+    mapper = OccupancyMapper(CAL)
+    for _ in range(3):
+        mapper.integrate_scan(_box_room_scan(truth, 0.0), truth)
+    cfg = ParticleFilterConfig(
+        initial_pose=tuple(truth), initial_sigma=(0.3, 0.3, 0.15), n_particles=300,
+        use_scans=True, scan_every_m=0.0, scan_every_rad=0.0, max_beams=60,
+    )  # fmt: skip
+    pf = ParticleFilter(cfg, CAL)
+    pf.attach_map(mapper)
+    pf.process(EncoderTicks(0.0, 0, 0))
+    prior_error = np.hypot(*(pf.particles[:, :2] - truth[:2]).T).mean()
+    for k in range(3):
+        pf.process(_box_room_scan(truth, 0.1 * k))
+    est = pf.estimate()
+    assert pf.diagnostics()["scan_updates"] == 3
+    assert np.hypot(*(est.pose[:2] - truth[:2])) < 0.1 < prior_error
+    assert abs(est.pose[2] - truth[2]) < 0.05
+
+
+def test_scans_without_a_map_are_ignored():
+    pf = ParticleFilter(ParticleFilterConfig(use_scans=True), CAL)
+    pf.process(EncoderTicks(0.0, 0, 0))
+    pf.process(_box_room_scan((0.0, 0.0, 0.0), 0.0))
+    assert pf.diagnostics()["scan_updates"] == 0
+    assert pf.diagnostics()["note"] == ODOMETRY_ONLY_NOTE
+
+
+# -- the simulated course (tests/conftest.py: ~160 s on a dusty floor, with slip) ----------
+
+
+def _groundtruth(times: list[float], poses: list[tuple]) -> Trajectory:
+    t = np.array(times)
+    keep = np.concatenate([[True], np.diff(t) > 0])
+    return Trajectory(t[keep], np.array(poses)[keep])
+
+
+def _replay(log, config=None, landmark_map=None):
+    """Feed a trial to the particle filter and to dead reckoning (no mapper)."""
+    trial = read_log(log)
+    start = trial.metadata["config"]["initial_pose"]
+    pf = create("particle-filter", trial.calibration, config, start, landmark_map=landmark_map)
+    dr = create("dead-reckoning", trial.calibration, initial_pose=start)
+    gt_t, gt = [], []
+    for m in trial.messages():
+        pf.process(m)
+        dr.process(m)
+        if isinstance(m, GroundTruthPose):
+            gt_t.append(m.t)
+            gt.append((m.x, m.y, m.theta))
+    return pf, dr, _groundtruth(gt_t, gt), trial
+
+
+@pytest.mark.slow
+def test_known_tag_map_beats_dead_reckoning(course_trial):
+    """At the defaults (500 particles). Measured: aligned ATE 0.019 m (unaligned 0.020 m)
+    against dead reckoning's 0.373 m (0.383 m); 0.022 m on the same course with seed 3."""
+    lm = landmarks.from_metadata(read_log(course_trial).metadata)
+    pf, dr, gt, _ = _replay(course_trial, landmark_map=lm)
+    e_pf, e_dr = ate(pf.trajectory(), gt), ate(dr.trajectory(), gt)
+    assert e_pf["ate_rmse_m"] < e_dr["ate_rmse_m"]
+    assert e_pf["ate_rmse_unaligned_m"] < e_dr["ate_rmse_unaligned_m"]
+    assert e_pf["ate_rmse_m"] < 0.05
+    d = pf.diagnostics()
+    assert d["landmark_observations"] > 500 and d["unknown_ids"] == 0
+    assert "note" not in d
+
+
+@pytest.mark.slow
+def test_depth_frames_against_a_map_at_the_true_poses_localise(course_trial):
+    """The scan likelihood alone, against a map it did not build itself (the frames mapped
+    at the true poses, each frame scored before it is added). 200 particles. Measured:
+    aligned ATE 0.029 m (500 particles: 0.026 m); dead reckoning 0.373 m."""
+    trial = read_log(course_trial)
+    cfg = ParticleFilterConfig(n_particles=200, use_scans=True)
+    pf = create("particle-filter", trial.calibration, cfg, trial.metadata["config"]["initial_pose"])
+    mapper = OccupancyMapper(trial.calibration)
+    pf.attach_map(mapper)
+    truth, gt_t, gt = None, [], []
+    for m in trial.messages():
+        pf.process(m)
+        if isinstance(m, GroundTruthPose):
+            truth = (m.x, m.y, m.theta)
+            gt_t.append(m.t)
+            gt.append(truth)
+        elif isinstance(m, DepthFrame):
+            mapper.integrate_depth(m, np.array(truth))
+    e = ate(pf.trajectory(), _groundtruth(gt_t, gt))
+    assert e["ate_rmse_m"] < 0.08
+    assert pf.diagnostics()["scan_updates"] > 200
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    reason="depth frames against the shared map that the filter's own estimates build: "
+    "measured on course_trial (500 particles, defaults + use_scans): unaligned ATE 0.876 m "
+    "vs dead reckoning 0.383 m (aligned 0.749 vs 0.373 m); with seed 3: 0.851 vs 0.870 m "
+    "(aligned 0.744 vs 0.503 m). A frame matches the map of the frames just before it to "
+    "about 1° (rms at the true poses), and that error is built into the map the next frame "
+    "is matched to, so the heading drifts faster than the odometry's.",
+    strict=False,
+)
+def test_depth_frames_against_its_own_map_beat_dead_reckoning(course_trial):
+    trial = read_log(course_trial)
+    start = trial.metadata["config"]["initial_pose"]
+    pf = create("particle-filter", trial.calibration, ParticleFilterConfig(use_scans=True), start)
+    pipe = Pipeline(pf, trial.calibration, reference_map=False)
+    pf.attach_map(pipe.mapper)  # what the pipeline is to do for every localizer with attach_map
+    dr = create("dead-reckoning", trial.calibration, initial_pose=start)
+    for m in trial.messages():
+        pipe.feed(m)
+        dr.process(m)
+    gt = pipe.recorded.groundtruth_trajectory()
+    assert pf.diagnostics()["scan_updates"] > 200
+    e_pf, e_dr = ate(pf.trajectory(), gt), ate(dr.trajectory(), gt)
+    assert e_pf["ate_rmse_unaligned_m"] < e_dr["ate_rmse_unaligned_m"]
