@@ -68,17 +68,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
-from hardware.messages import Message, RangeBearing, TagDetections
+from hardware.messages import Message
 from slam.base import Localizer, PoseEstimate, register
 from slam.geometry import wrap_angle
 from slam.measurement import (
     LandmarkObservation,
     landmark_from_range_bearing,
     landmark_from_range_bearing_jacobians,
+    landmark_observation,
     range_bearing,
     range_bearing_jacobians,
-    range_bearing_observation,
-    tag_observations,
 )
 from slam.motion import Increment, MotionNoise, OdometryModel, apply_increment
 from slam.trajectory import Trajectory
@@ -408,10 +407,8 @@ class FastSlam(Localizer):
         if inc is not None:
             self._move(inc)
             self._record(msg.t)
-        elif isinstance(msg, TagDetections):
-            self._observe(tag_observations(msg, self.calibration))
-        elif isinstance(msg, RangeBearing):
-            self._observe(range_bearing_observation(msg))
+        elif (obs := landmark_observation(msg, self.calibration)) is not None:
+            self._observe(obs)
         if not self._times and self.odometry.has_odometry:
             self._record(msg.t)
 

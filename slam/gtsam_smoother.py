@@ -20,10 +20,10 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from hardware.calibration import WalkerCalibration
-from hardware.messages import Message, RangeBearing, TagDetections
+from hardware.messages import Message
 from slam.base import Localizer, PoseEstimate, register
 from slam.geometry import compose
-from slam.measurement import LandmarkObservation, range_bearing_observation, tag_observations
+from slam.measurement import LandmarkObservation, landmark_observation
 from slam.motion import MotionNoise, OdometryModel, apply_increment, increment_jacobians
 from slam.trajectory import Trajectory
 
@@ -89,10 +89,8 @@ class GtsamSmoother(Localizer):
             self._note(msg.t)
             if self._keyframe_due(msg.t):
                 self._new_keyframe(msg.t)
-        elif isinstance(msg, TagDetections):
-            self._observe(tag_observations(msg, self.calibration))
-        elif isinstance(msg, RangeBearing):
-            self._observe(range_bearing_observation(msg))
+        elif (obs := landmark_observation(msg, self.calibration)) is not None:
+            self._observe(obs)
         if self._kf < 0 and self.odometry.has_odometry:
             self._start(msg.t)
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
-from hardware.messages import RangeBearing, TagDetections
+from hardware.messages import Message, RangeBearing, TagDetections
 from slam.geometry import wrap_angle
 
 
@@ -102,6 +102,18 @@ def tag_observations(msg: TagDetections, calibration: WalkerCalibration) -> Land
     return LandmarkObservation(
         msg.t, np.array(ids, dtype=int), np.array(zs, dtype=float).reshape(-1, 2), np.array(yaws)
     )
+
+
+def landmark_observation(
+    msg: Message, calibration: WalkerCalibration
+) -> LandmarkObservation | None:
+    """The landmark observations a message carries (tag detections or a range-bearing
+    measurement), or None when it carries none."""
+    if isinstance(msg, TagDetections):
+        return tag_observations(msg, calibration) if msg.detections else None
+    if isinstance(msg, RangeBearing):
+        return range_bearing_observation(msg)
+    return None
 
 
 def range_bearing_observation(msg: RangeBearing) -> LandmarkObservation:

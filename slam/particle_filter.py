@@ -39,16 +39,15 @@ from scipy.ndimage import binary_erosion, distance_transform_edt
 from scipy.special import logsumexp
 
 from hardware.calibration import WalkerCalibration
-from hardware.messages import DepthFrame, LaserScan, Message, RangeBearing, TagDetections
+from hardware.messages import DepthFrame, LaserScan, Message
 from mapping.depth_points import DepthConfig, project_depth_frame
 from mapping.scan_points import ScanConfig, scan_to_observation
 from slam.base import Localizer, PoseEstimate, register
 from slam.geometry import wrap_angle
 from slam.measurement import (
     LandmarkObservation,
+    landmark_observation,
     range_bearing,
-    range_bearing_observation,
-    tag_observations,
 )
 from slam.motion import Increment, MotionNoise, OdometryModel, apply_increment
 from slam.trajectory import Trajectory
@@ -232,11 +231,8 @@ class ParticleFilter(Localizer):
         if inc is not None:
             self._predict(inc)
             self._record(msg.t)
-        elif isinstance(msg, TagDetections):
-            if msg.detections:
-                self._observe_landmarks(tag_observations(msg, self.calibration))
-        elif isinstance(msg, RangeBearing):
-            self._observe_landmarks(range_bearing_observation(msg))
+        elif (obs := landmark_observation(msg, self.calibration)) is not None:
+            self._observe_landmarks(obs)
         elif isinstance(msg, DepthFrame | LaserScan):
             self._observe_frame(msg)
         if not self._times and self.odometry.has_odometry:
