@@ -11,7 +11,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.messages import Message
 from slam.base import Localizer, PoseEstimate, register
 from slam.motion import MotionNoise, OdometryModel, arc_increment
-from slam.trajectory import Trajectory
+from slam.trajectory import Trajectory, TrajectoryRecorder
 
 
 @dataclass(frozen=True)
@@ -34,10 +34,8 @@ class DeadReckoning(Localizer):
         x0, y0, th0 = (float(v) for v in config.initial_pose)
         self._pose = (x0, y0, th0)
         self._cov = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-        self._t: float | None = None
         self._started = False
-        self._times: list[float] = []
-        self._poses: list[tuple[float, float, float]] = []
+        self.track = TrajectoryRecorder()
 
     def process(self, msg: Message) -> None:
         inc = self.odometry.increment(msg)
@@ -83,22 +81,13 @@ class DeadReckoning(Localizer):
         self._pose = (x + dx, y + dy, math.remainder(th + dth, 2.0 * math.pi))
 
     def _record(self, t: float) -> None:
-        if self._times and t <= self._times[-1]:
-            # Same or earlier stamp: keep one pose per time (the newest).
-            if t == self._times[-1]:
-                self._poses[-1] = self._pose
-            return
-        self._t = t
-        self._times.append(t)
-        self._poses.append(self._pose)
+        self.track.record(t, self._pose)
 
     def estimate(self) -> PoseEstimate:
-        t = self._t if self._t is not None else float("nan")
-        return PoseEstimate(t, np.array(self._pose), np.array(self._cov))
+        return PoseEstimate(self.track.last_t, np.array(self._pose), np.array(self._cov))
 
     def trajectory(self) -> Trajectory:
-        poses = np.array(self._poses, dtype=float).reshape(-1, 3)
-        return Trajectory(np.array(self._times), poses)
+        return self.track.trajectory()
 
 
 register(

@@ -26,7 +26,7 @@ from slam.measurement import (
     range_bearing_jacobians,
 )
 from slam.motion import MotionNoise, OdometryModel, apply_increment, increment_jacobians
-from slam.trajectory import Trajectory
+from slam.trajectory import Trajectory, TrajectoryRecorder
 
 
 @dataclass(frozen=True)
@@ -57,9 +57,7 @@ class EkfSlam(Localizer):
         self.P = np.zeros((3, 3))
         self.index: dict[int, int] = {}  # landmark id → state offset
         self.counts = {"updates": 0, "new_landmarks": 0, "gated": 0, "without_id": 0}
-        self._t: float | None = None
-        self._times: list[float] = []
-        self._poses: list[np.ndarray] = []
+        self.track = TrajectoryRecorder()
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
@@ -69,7 +67,7 @@ class EkfSlam(Localizer):
             self._record(msg.t)
         elif (obs := landmark_observation(msg, self.calibration)) is not None:
             self._observe(obs)
-        if not self._times and self.odometry.has_odometry:
+        if not self.track and self.odometry.has_odometry:
             self._record(msg.t)
 
     def _predict(self, ds: float, dth: float, q: np.ndarray) -> None:
@@ -129,23 +127,17 @@ class EkfSlam(Localizer):
         self.P = p - k @ s @ k.T
         self.P = 0.5 * (self.P + self.P.T)
         self.counts["updates"] += 1
-        if self._times:
-            self._poses[-1] = self.x[:3].copy()
+        self.track.amend(self.x[:3].copy())
 
     def _record(self, t: float) -> None:
-        if self._times and t <= self._times[-1]:
-            return
-        self._t = t
-        self._times.append(t)
-        self._poses.append(self.x[:3].copy())
+        self.track.record(t, self.x[:3].copy())
 
     # -- outputs ----------------------------------------------------------------------
     def estimate(self) -> PoseEstimate:
-        t = self._t if self._t is not None else float("nan")
-        return PoseEstimate(t, self.x[:3].copy(), self.P[:3, :3].copy())
+        return PoseEstimate(self.track.last_t, self.x[:3].copy(), self.P[:3, :3].copy())
 
     def trajectory(self) -> Trajectory:
-        return Trajectory(np.array(self._times), np.array(self._poses).reshape(-1, 3))
+        return self.track.trajectory()
 
     def landmarks(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Landmark id → (mean (2,), covariance 2×2)."""

@@ -80,7 +80,7 @@ from slam.measurement import (
     range_bearing_jacobians,
 )
 from slam.motion import Increment, MotionNoise, OdometryModel, apply_increment
-from slam.trajectory import Trajectory
+from slam.trajectory import Trajectory, TrajectoryRecorder
 
 __all__ = [
     "FastSlam",
@@ -397,9 +397,7 @@ class FastSlam(Localizer):
             self.counts["without_yaw"] = 0
         self.n_eff = float(n)
         self.n_eff_min = float(n)
-        self._t: float | None = None
-        self._times: list[float] = []
-        self._poses: list[np.ndarray] = []
+        self.track = TrajectoryRecorder()
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
@@ -409,7 +407,7 @@ class FastSlam(Localizer):
             self._record(msg.t)
         elif (obs := landmark_observation(msg, self.calibration)) is not None:
             self._observe(obs)
-        if not self._times and self.odometry.has_odometry:
+        if not self.track and self.odometry.has_odometry:
             self._record(msg.t)
 
     def _move(self, inc: Increment) -> None:
@@ -569,8 +567,7 @@ class FastSlam(Localizer):
         self.n_eff_min = min(self.n_eff_min, self.n_eff)
         if self.n_eff < self.config.resample_threshold * self.n:
             self._resample()
-        if self._times:
-            self._poses[-1] = self._mean_pose()
+        self.track.amend(self._mean_pose())
 
     def _resample(self) -> None:
         idx = systematic_resample(self._w, self.rng)
@@ -589,17 +586,13 @@ class FastSlam(Localizer):
         return np.array([float(w @ p[:, 0]), float(w @ p[:, 1]), th])
 
     def _record(self, t: float) -> None:
-        if self._times and t <= self._times[-1]:
-            return
-        self._t = t
-        self._times.append(t)
-        self._poses.append(self._mean_pose())
+        self.track.record(t, self._mean_pose())
 
     # -- outputs ----------------------------------------------------------------------
     def estimate(self) -> PoseEstimate:
         """Weighted mean pose (circular mean of θ) and covariance: the particles' weighted
         spread plus (2.0) their weighted motion covariance not yet sampled."""
-        t = self._t if self._t is not None else float("nan")
+        t = self.track.last_t
         mean = self._mean_pose()
         d = self.poses - mean
         d[:, 2] = wrap_angle(d[:, 2])
@@ -608,7 +601,7 @@ class FastSlam(Localizer):
         return PoseEstimate(t, mean, _symmetric(cov))
 
     def trajectory(self) -> Trajectory:
-        return Trajectory(np.array(self._times), np.array(self._poses).reshape(-1, 3))
+        return self.track.trajectory()
 
     def landmarks(self, full: bool = False) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Landmark id → (mean (2,), covariance 2×2) of the highest-weight particle; with

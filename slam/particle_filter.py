@@ -50,7 +50,7 @@ from slam.measurement import (
     range_bearing,
 )
 from slam.motion import Increment, MotionNoise, OdometryModel, apply_increment
-from slam.trajectory import Trajectory
+from slam.trajectory import Trajectory, TrajectoryRecorder
 
 ODOMETRY_ONLY_NOTE = "no landmark observations and no map: odometry only"
 # The likelihood field covers the map within max_range_m + this of the walker when it is
@@ -209,9 +209,7 @@ class ParticleFilter(Localizer):
             "resamples": 0,
             "n_eff_min": float(n),
         }
-        self._t: float | None = None
-        self._times: list[float] = []
-        self._poses: list[np.ndarray] = []
+        self.track = TrajectoryRecorder()
 
     # -- the map the scan likelihood uses ------------------------------------------------
     def attach_map(self, source: Any) -> None:
@@ -235,7 +233,7 @@ class ParticleFilter(Localizer):
             self._observe_landmarks(obs)
         elif isinstance(msg, DepthFrame | LaserScan):
             self._observe_frame(msg)
-        if not self._times and self.odometry.has_odometry:
+        if not self.track and self.odometry.has_odometry:
             self._record(msg.t)
 
     def _predict(self, inc: Increment) -> None:
@@ -378,8 +376,8 @@ class ParticleFilter(Localizer):
             w = np.full(n, 1.0 / n)
             self.counts["resamples"] += 1
         self.log_weights, self._weights = lw, w
-        if self._times and self._times[-1] == t:
-            self._poses[-1] = self._mean()
+        if self.track.last_t == t:
+            self.track.amend(self._mean())
 
     @property
     def weights(self) -> np.ndarray:
@@ -398,16 +396,10 @@ class ParticleFilter(Localizer):
         return np.array([float(w @ p[:, 0]), float(w @ p[:, 1]), th])
 
     def _record(self, t: float) -> None:
-        if self._times and t <= self._times[-1]:
-            if t == self._times[-1]:
-                self._poses[-1] = self._mean()
-            return
-        self._t = t
-        self._times.append(t)
-        self._poses.append(self._mean())
+        self.track.record(t, self._mean())
 
     def estimate(self) -> PoseEstimate:
-        t = self._t if self._t is not None else float("nan")
+        t = self.track.last_t
         mean = self._mean()
         d = self.particles - mean
         d[:, 2] = wrap_angle(d[:, 2])
@@ -415,7 +407,7 @@ class ParticleFilter(Localizer):
         return PoseEstimate(t, mean, 0.5 * (cov + cov.T))
 
     def trajectory(self) -> Trajectory:
-        return Trajectory(np.array(self._times), np.array(self._poses).reshape(-1, 3))
+        return self.track.trajectory()
 
     def diagnostics(self) -> dict:
         notes = dict(self.counts)

@@ -65,3 +65,39 @@ class Trajectory:
         qx, qy, qz, qw = rows[:, 4], rows[:, 5], rows[:, 6], rows[:, 7]
         yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
         return cls(rows[:, 0], np.column_stack([rows[:, 1], rows[:, 2], yaw]))
+
+
+class TrajectoryRecorder:
+    """A localizer's pose history: one pose per time, the newest estimate at each time.
+
+    `record(t, pose)` appends at a later time, replaces the last pose at the same time and
+    ignores an earlier time; `amend(pose)` replaces the last pose (after a measurement
+    update between two odometry messages).
+    """
+
+    def __init__(self) -> None:
+        self._times: list[float] = []
+        self._poses: list = []
+
+    def __len__(self) -> int:
+        return len(self._times)
+
+    @property
+    def last_t(self) -> float:
+        return self._times[-1] if self._times else float("nan")
+
+    def record(self, t: float, pose) -> None:
+        if self._times and t <= self._times[-1]:
+            if t == self._times[-1]:
+                self._poses[-1] = pose
+            return
+        self._times.append(t)
+        self._poses.append(pose)
+
+    def amend(self, pose) -> None:
+        if self._poses:
+            self._poses[-1] = pose
+
+    def trajectory(self) -> Trajectory:
+        poses = np.array(self._poses, dtype=float).reshape(-1, 3)
+        return Trajectory(np.array(self._times), poses)

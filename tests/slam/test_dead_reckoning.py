@@ -168,3 +168,19 @@ def test_brake_aware_noise_grows_with_the_logged_torque():
     assert b.cov[1, 1] > 2 * a.cov[1, 1]
     # the left wheel's under-report (10 % at full brake) is removed: 90 counts → 100
     assert b.dtheta == pytest.approx(0.0, abs=1e-12)
+
+
+def test_trajectory_recorder_keeps_the_newest_pose_per_time():
+    from slam.trajectory import TrajectoryRecorder
+
+    rec = TrajectoryRecorder()
+    assert len(rec) == 0 and np.isnan(rec.last_t)
+    rec.amend((9.0, 9.0, 9.0))  # nothing to amend yet
+    rec.record(0.0, (0.0, 0.0, 0.0))
+    rec.record(1.0, (1.0, 0.0, 0.0))
+    rec.record(1.0, (1.5, 0.0, 0.0))  # same time: the newest wins
+    rec.record(0.5, (7.0, 7.0, 7.0))  # earlier: ignored
+    rec.amend((2.0, 0.0, 0.1))
+    tr = rec.trajectory()
+    assert list(tr.t) == [0.0, 1.0] and rec.last_t == 1.0
+    assert np.allclose(tr.poses, [[0.0, 0.0, 0.0], [2.0, 0.0, 0.1]])
