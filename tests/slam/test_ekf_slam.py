@@ -2,31 +2,22 @@
 
 import numpy as np
 import pytest
+from helpers import replay
 
 from experiments.metrics import ate
-from experiments.pipeline import Pipeline
 from hardware.calibration import WalkerCalibration
-from hardware.log import read_log
 from hardware.messages import EncoderTicks, RangeBearing
 from hardware.sim.world import World
 from slam.base import create
 from slam.ekf_slam import EkfSlamConfig
 
 
-def run(log, name):
-    trial = read_log(log)
-    loc = create(name, trial.calibration, initial_pose=trial.metadata["config"]["initial_pose"])
-    pipe = Pipeline(loc, trial.calibration, reference_map=False)
-    pipe.run(trial.messages())
-    return loc, pipe, trial
-
-
 @pytest.mark.slow
 def test_beats_dead_reckoning_and_maps_tags(course_trial):
     """Over the whole route, which comes back past tags seen before (no loop closure
     happens on the way out: every tag is new there)."""
-    dr, pipe, trial = run(course_trial, "dead-reckoning")
-    ekf, _, _ = run(course_trial, "ekf-slam")
+    dr, pipe, trial = replay(course_trial, "dead-reckoning")
+    ekf, _, _ = replay(course_trial, "ekf-slam")
     gt = pipe.recorded.groundtruth_trajectory()
     e_dr, e_ekf = ate(dr.trajectory(), gt), ate(ekf.trajectory(), gt)
     assert e_ekf["ate_rmse_unaligned_m"] < 0.6 * e_dr["ate_rmse_unaligned_m"]
@@ -42,8 +33,8 @@ def test_beats_dead_reckoning_and_maps_tags(course_trial):
 
 @pytest.mark.slow
 def test_same_input_same_output(course_trial):
-    a, _, _ = run(course_trial, "ekf-slam")
-    b, _, _ = run(course_trial, "ekf-slam")
+    a, _, _ = replay(course_trial, "ekf-slam")
+    b, _, _ = replay(course_trial, "ekf-slam")
     assert np.array_equal(a.trajectory().poses, b.trajectory().poses)
 
 

@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import numerical_jacobian
 
 from experiments.metrics import ate, landmark_rmse
 from hardware.calibration import WalkerCalibration
@@ -35,17 +36,6 @@ from slam.motion import apply_increment, increment_jacobians
 from slam.trajectory import Trajectory
 
 
-def numerical(f, x, eps=1e-7):
-    cols = []
-    for i in range(len(x)):
-        d = np.zeros_like(x)
-        d[i] = eps
-        diff = f(x + d) - f(x - d)
-        diff[1:] = (diff[1:] + np.pi) % (2 * np.pi) - np.pi  # bearing, yaw
-        cols.append(diff / (2 * eps))
-    return np.stack(cols, axis=-1)
-
-
 @pytest.fixture
 def cases():
     rng = np.random.default_rng(11)
@@ -62,8 +52,16 @@ def cases():
 def test_tag_pose_model_jacobians_and_inverse(cases):
     for pose, tag in zip(*cases, strict=True):
         g_s, g_l = tag_pose_jacobians(pose, tag)
-        assert np.allclose(g_s, numerical(lambda p, tag=tag: tag_pose(p, tag), pose), atol=1e-6)
-        assert np.allclose(g_l, numerical(lambda m, pose=pose: tag_pose(pose, m), tag), atol=1e-6)
+        assert np.allclose(
+            g_s,
+            numerical_jacobian(lambda p, tag=tag: tag_pose(p, tag), pose, wrap=(1, 2)),
+            atol=1e-6,
+        )
+        assert np.allclose(
+            g_l,
+            numerical_jacobian(lambda m, pose=pose: tag_pose(pose, m), tag, wrap=(1, 2)),
+            atol=1e-6,
+        )
         z = tag_pose(pose, tag)
         back = landmark_from_tag_pose(pose, z)
         assert np.allclose(back[:2], tag[:2]) and math.remainder(back[2] - tag[2], 2 * math.pi) == (
@@ -71,10 +69,16 @@ def test_tag_pose_model_jacobians_and_inverse(cases):
         )
         j_s, j_z = landmark_from_tag_pose_jacobians(pose, z)
         assert np.allclose(
-            j_s, numerical(lambda p, z=z: landmark_from_tag_pose(p, z), pose), atol=1e-6
+            j_s,
+            numerical_jacobian(lambda p, z=z: landmark_from_tag_pose(p, z), pose, wrap=(1, 2)),
+            atol=1e-6,
         )
         assert np.allclose(
-            j_z, numerical(lambda zz, pose=pose: landmark_from_tag_pose(pose, zz), z), atol=1e-6
+            j_z,
+            numerical_jacobian(
+                lambda zz, pose=pose: landmark_from_tag_pose(pose, zz), z, wrap=(1, 2)
+            ),
+            atol=1e-6,
         )
 
 

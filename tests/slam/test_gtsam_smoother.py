@@ -2,22 +2,13 @@
 
 import numpy as np
 import pytest
+from helpers import replay
 
 from experiments.metrics import ate, map_scores
-from experiments.pipeline import Pipeline
 from hardware.calibration import WalkerCalibration
-from hardware.log import read_log
 from hardware.messages import EncoderTicks, RangeBearing
 from hardware.sim.world import World
 from slam.base import create
-
-
-def replay(log, name):
-    trial = read_log(log)
-    loc = create(name, trial.calibration, initial_pose=trial.metadata["config"]["initial_pose"])
-    pipe = Pipeline(loc, trial.calibration, reference_map=False)
-    pipe.run(trial.messages())
-    return loc, pipe, trial
 
 
 @pytest.mark.slow

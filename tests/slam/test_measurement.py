@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import numerical_jacobian
 
 from hardware.messages import TagDetections
 from hardware.sim.simulator import SimConfig
@@ -16,18 +17,6 @@ from slam.measurement import (
     range_bearing_jacobians,
     tag_observations,
 )
-
-
-def numerical(f, x, eps=1e-7):
-    cols = []
-    for i in range(len(x)):
-        d = np.zeros_like(x)
-        d[i] = eps
-        diff = f(x + d) - f(x - d)
-        if diff.shape[-1] == 2:  # wrap the bearing difference
-            diff[..., 1] = (diff[..., 1] + np.pi) % (2 * np.pi) - np.pi
-        cols.append(diff / (2 * eps))
-    return np.stack(cols, axis=-1)
 
 
 @pytest.fixture
@@ -43,9 +32,15 @@ def cases():
 def test_range_bearing_jacobians_match_numerical(cases):
     for pose, lm in zip(*cases, strict=True):
         g_s, g_l = range_bearing_jacobians(pose, lm)
-        assert np.allclose(g_s, numerical(lambda p, lm=lm: range_bearing(p, lm), pose), atol=1e-6)
         assert np.allclose(
-            g_l, numerical(lambda m, pose=pose: range_bearing(pose, m), lm), atol=1e-6
+            g_s,
+            numerical_jacobian(lambda p, lm=lm: range_bearing(p, lm), pose, wrap=(1,)),
+            atol=1e-6,
+        )
+        assert np.allclose(
+            g_l,
+            numerical_jacobian(lambda m, pose=pose: range_bearing(pose, m), lm, wrap=(1,)),
+            atol=1e-6,
         )
 
 
@@ -64,9 +59,11 @@ def test_inverse_model_round_trip_and_jacobians(cases):
         assert np.allclose(landmark_from_range_bearing(pose, z), lm)
         j_s, j_z = landmark_from_range_bearing_jacobians(pose, z)
         assert np.allclose(
-            j_s, numerical(lambda p, z=z: landmark_from_range_bearing(p, z), pose), atol=1e-6
+            j_s,
+            numerical_jacobian(lambda p, z=z: landmark_from_range_bearing(p, z), pose),
+            atol=1e-6,
         )
-        num_z = numerical(lambda zz, pose=pose: landmark_from_range_bearing(pose, zz), z)
+        num_z = numerical_jacobian(lambda zz, pose=pose: landmark_from_range_bearing(pose, zz), z)
         assert np.allclose(j_z, num_z, atol=1e-6)
 
 
