@@ -11,6 +11,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, is_dataclass, replace
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +29,7 @@ from mapping.mapper import MapperConfig
 from slam import landmarks
 from slam.base import create
 
-VERSION = "0.1.0"
+VERSION = metadata.version("walker-slam")  # from pyproject.toml, via the install
 # The mapper's obstacle band: what the map should show of the true world.
 MAP_BAND_M = (0.05, 2.0)
 
