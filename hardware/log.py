@@ -746,10 +746,14 @@ _RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 
 
-def _chunk_records(body: bytes, validate: bool) -> list[Any]:
-    """Records of a chunk (MCAP spec layout), parsed with struct: message records are
-    fixed-layout and by far the most numerous, so this is much faster than the generic
-    record reader, which is kept for the rare schema and channel records."""
+_Record = tuple[int, int, bytes]  # a message record: (log time ns, channel id, data)
+
+
+def _chunk_records(body: bytes, validate: bool) -> tuple[list[_Record], list[Any]]:
+    """(messages, schema and channel records) of a chunk (MCAP spec layout), parsed with
+    struct: message records are fixed-layout and by far the most numerous, so this is much
+    faster than the generic record reader, which is kept for the rare schema and channel
+    records. Messages come as plain tuples, in file order."""
     _, _, usize, crc, clen = _CHUNK_HEAD.unpack_from(body, 0)
     pos = _CHUNK_HEAD.size
     compression = body[pos : pos + clen].decode()
@@ -766,31 +770,34 @@ def _chunk_records(body: bytes, validate: bool) -> list[Any]:
         raise ValueError(f"unsupported chunk compression {compression!r}")
     if validate and crc and zlib.crc32(data) != crc:
         raise ValueError("chunk CRC mismatch")
-    out: list[Any] = []
+    messages: list[_Record] = []
+    others: list[Any] = []
+    record_head, message_head = _RECORD_HEAD.unpack_from, _MESSAGE_HEAD.unpack_from
+    head, mhead = _RECORD_HEAD.size, _MESSAGE_HEAD.size
     pos, n = 0, len(data)
     while pos < n:
-        opcode, length = _RECORD_HEAD.unpack_from(data, pos)
-        pos += _RECORD_HEAD.size
+        opcode, length = record_head(data, pos)
+        pos += head
         end = pos + length
         if end > n:
             raise ValueError("truncated record in chunk")
         if opcode == Opcode.MESSAGE:
-            channel, seq, log_ns, pub_ns = _MESSAGE_HEAD.unpack_from(data, pos)
-            out.append(
-                McapMessage(channel, log_ns, data[pos + _MESSAGE_HEAD.size : end], pub_ns, seq)
-            )
+            channel, _, log_ns, _ = message_head(data, pos)
+            messages.append((log_ns, channel, data[pos + mhead : end]))
         elif opcode == Opcode.SCHEMA:
-            out.append(Schema.read(_record_stream(data[pos:end])))
+            others.append(Schema.read(_record_stream(data[pos:end])))
         elif opcode == Opcode.CHANNEL:
-            out.append(Channel.read(_record_stream(data[pos:end])))
+            others.append(Channel.read(_record_stream(data[pos:end])))
         pos = end
-    return out
+    return messages, others
 
 
-def _messages_in(opcode: int, body: bytes, validate: bool = False) -> list[Any]:
+def _messages_in(opcode: int, body: bytes, validate: bool = False) -> tuple[list[_Record], list]:
+    """(messages, schema and channel records) of a chunk or an unchunked message record."""
     if opcode == Opcode.CHUNK:
         return _chunk_records(body, validate)
-    return [McapMessage.read(_record_stream(body), len(body))]
+    rec = McapMessage.read(_record_stream(body), len(body))
+    return [(rec.log_time, rec.channel_id, rec.data)], []
 
 
 class TrialLog:
@@ -960,23 +967,24 @@ class TrialLog:
             return offset, what
 
     def _scan_block(self, offset: int, opcode: int, body: bytes) -> None:
-        records = _messages_in(opcode, body, validate=True)
-        start, end, present = None, None, set()
-        for rec in records:
+        messages, others = _messages_in(opcode, body, validate=True)
+        for rec in others:
             if isinstance(rec, Schema):
                 self._schemas[rec.id] = rec
-            elif isinstance(rec, Channel):
+            else:
                 self._channels[rec.id] = rec
-            elif isinstance(rec, McapMessage):
-                ns, c = rec.log_time, rec.channel_id
-                present.add(c)
-                start = ns if start is None else min(start, ns)
-                end = ns if end is None else max(end, ns)
-                stats = self._counts.setdefault(c, [0, ns, ns])
-                stats[0] += 1
-                stats[1], stats[2] = min(stats[1], ns), max(stats[2], ns)
-        if start is not None:
-            self._blocks.append(_Block(offset, start, end, frozenset(present)))
+        if not messages:
+            return
+        per_channel: dict[int, list[int]] = {}
+        for ns, c, _ in messages:
+            per_channel.setdefault(c, []).append(ns)
+        for c, times in per_channel.items():
+            stats = self._counts.setdefault(c, [0, times[0], times[0]])
+            stats[0] += len(times)
+            stats[1], stats[2] = min(stats[1], *times), max(stats[2], *times)
+        start = min(ns for ns, _, _ in messages)
+        end = max(ns for ns, _, _ in messages)
+        self._blocks.append(_Block(offset, start, end, frozenset(per_channel)))
 
     def _add_metadata(self, record: Metadata) -> None:
         if set(record.metadata) == {"json"}:
@@ -1022,30 +1030,32 @@ class TrialLog:
                 # Blocks follow each other in time (a recorder writes them so): a stable
                 # sort within each block is the global order.
                 for block in blocks:
-                    recs = [r for r in self._read_block(f, block) if r.channel_id in channels]
-                    recs.sort(key=lambda r: r.log_time)
-                    for rec in recs:
-                        yield rec.log_time, rec.channel_id, rec.data
+                    recs = [r for r in self._read_block(f, block) if r[1] in channels]
+                    recs.sort(key=_log_time)
+                    yield from recs
                 return
             heap: list[tuple[int, int, int, Any]] = [(b.start_ns, b.offset, -1, b) for b in blocks]
             heapq.heapify(heap)
             while heap:
-                ns, offset, index, item = heapq.heappop(heap)
+                _, offset, index, item = heapq.heappop(heap)
                 if index >= 0:
-                    yield ns, item.channel_id, item.data
+                    yield item
                     continue
                 for i, rec in enumerate(self._read_block(f, item)):
-                    if rec.channel_id in channels:
-                        heapq.heappush(heap, (rec.log_time, offset, i, rec))
+                    if rec[1] in channels:
+                        heapq.heappush(heap, (rec[0], offset, i, rec))
 
-    def _read_block(self, f: io.BufferedReader, block: _Block) -> list[McapMessage]:
+    def _read_block(self, f: io.BufferedReader, block: _Block) -> list[_Record]:
         try:
             f.seek(block.offset)
             opcode, length = struct.unpack("<BQ", f.read(9))
-            records = _messages_in(opcode, f.read(length))
+            return _messages_in(opcode, f.read(length))[0]
         except Exception as e:
             self._fail(f"changed or unreadable while replaying (byte {block.offset}): {e!r}")
-        return [r for r in records if isinstance(r, McapMessage)]
+
+
+def _log_time(record: _Record) -> int:
+    return record[0]
 
 
 def _opcode_name(opcode: int) -> str:
