@@ -312,19 +312,51 @@ def demo(
 @app.command()
 @friendly
 def compare(
-    logs: Annotated[list[Path], typer.Argument(help="trial logs (.mcap)")],
+    logs: Annotated[
+        list[Path], typer.Argument(help="trial logs (.mcap), or datasets with --format")
+    ],
     localizers: Annotated[str, typer.Option(help="all, or names separated by commas")] = "all",
     seeds: Annotated[int, typer.Option(help="runs of each stochastic localizer")] = 3,
     out: Annotated[Path, typer.Option(help="output folder")] = Path("out/compare"),
+    format: Annotated[
+        str | None, typer.Option(help="read LOGS as datasets: mrclam, carmen, victoria-park")
+    ] = None,
+    robot: Annotated[
+        str | None, typer.Option(help="mrclam: robot numbers separated by commas, e.g. 1,2,3,4,5")
+    ] = None,
+    relations: RelationsOpt = None,
+    time_offset: TimeOffsetOpt = None,
 ) -> None:
-    """Run localizers on logs; write results.csv, results.db, report.md; print the table."""
+    """Run localizers on logs; write results.csv, results.db, report.md; print the table.
+
+    With several logs (or robots) each localizer also gets a row with the mean over them."""
     from experiments.compare import compare as run_compare
     from experiments.compare import parse_localizers
     from hardware.log import read_log
 
     names = parse_localizers(localizers)
-    for log in logs:
-        read_log(log)  # fail fast on a bad file, before any run
+    sources: list = []
+    if format is not None:
+        from hardware.datasets import open_dataset
+
+        robots: list[int | None] = [None]
+        if robot is not None:
+            try:
+                robots = [int(r) for r in robot.split(",") if r.strip()]
+            except ValueError:
+                raise ValueError(
+                    f"--robot must be numbers separated by commas, got {robot!r}"
+                ) from None
+        for log in logs:
+            for r in robots:
+                opts = _dataset_options(r, relations, time_offset)
+                sources.append(open_dataset(format, log, **opts))
+    else:
+        if robot is not None or relations is not None or time_offset is not None:
+            raise ValueError("--robot, --relations and --time-offset need --format")
+        for log in logs:
+            read_log(log)  # fail fast on a bad file, before any run
+        sources = list(logs)
     if seeds < 1:
         raise ValueError(f"--seeds must be >= 1, got {seeds}")
     with Progress(
@@ -336,7 +368,7 @@ def compare(
     ) as bar:
         task = bar.add_task("comparing", total=None)
         res = run_compare(
-            logs, names, seeds, out, progress=lambda what: bar.update(task, description=what)
+            sources, names, seeds, out, progress=lambda what: bar.update(task, description=what)
         )
     short = {
         "ate_rmse_m": "ATE m",

@@ -16,8 +16,11 @@ from typing import Any
 import numpy as np
 
 from experiments.run import ReplayResult, replay_log
-from hardware.log import read_log
+from hardware.datasets import Dataset
+from hardware.log import TrialLog, read_log
 from slam.base import LOCALIZERS
+
+Source = str | Path | TrialLog | Dataset
 
 COLUMNS = (
     "log",
@@ -67,23 +70,51 @@ def _row(log: str, localizer: str, seed: int | None, res: ReplayResult) -> dict[
     return row
 
 
+MEAN_OVER_LOGS = "mean over logs"
+
+
 def summarise(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Mean and std over seeds per (log, localizer); empty where not applicable."""
+    """Mean and std over seeds per (log, localizer); empty where not applicable.
+
+    With several logs, each localizer also gets a row (log = MEAN_OVER_LOGS) holding the
+    mean and std over the logs of its per-log means: the accuracy targets of dataset
+    benchmarks (e.g. MRCLAM robots 1–5) are means over robots."""
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault((r["log"], r["localizer"]), []).append(r)
     out = []
     for (log, loc), rs in groups.items():
-        s: dict[str, Any] = {"log": log, "localizer": loc, "runs": len(rs)}
-        for key in NUMERIC:
-            vals = np.array([r[key] for r in rs if r[key] != ""], dtype=float)
-            s[key] = (float(vals.mean()), float(vals.std())) if len(vals) else None
-        out.append(s)
+        out.append({"log": log, "localizer": loc, "runs": len(rs), **_stats(rs)})
+    if len({r["log"] for r in rows}) > 1:
+        for loc in dict.fromkeys(r["localizer"] for r in rows):
+            per_log = [
+                {k: ("" if s[k] is None else s[k][0]) for k in NUMERIC}
+                for s in out
+                if s["localizer"] == loc and s["log"] != MEAN_OVER_LOGS
+            ]
+            out.append(
+                {"log": MEAN_OVER_LOGS, "localizer": loc, "runs": len(per_log), **_stats(per_log)}
+            )
     return out
 
 
+def _stats(rows: list[dict[str, Any]]) -> dict[str, tuple[float, float] | None]:
+    out: dict[str, tuple[float, float] | None] = {}
+    for key in NUMERIC:
+        vals = np.array([r[key] for r in rows if r[key] != ""], dtype=float)
+        out[key] = (float(vals.mean()), float(vals.std())) if len(vals) else None
+    return out
+
+
+def source_name(source: Source) -> str:
+    """The name a source's rows get: a log's file stem, a dataset's name."""
+    if isinstance(source, Dataset):
+        return source.name.replace("/", "_")
+    return Path(source.path if isinstance(source, TrialLog) else source).stem
+
+
 def compare(
-    logs: Sequence[str | Path],
+    logs: Sequence[Source],
     localizers: Sequence[str],
     seeds: int,
     out_dir: str | Path,
@@ -99,9 +130,9 @@ def compare(
     )
     rows: list[dict[str, Any]] = []
     trajectories: dict[str, dict[str, np.ndarray]] = {}
-    for log_path in logs:
-        trial = read_log(log_path)
-        name = Path(log_path).stem
+    for source in logs:
+        trial = source if isinstance(source, TrialLog | Dataset) else read_log(source)
+        name = source_name(source)
         for loc in localizers:
             spec = LOCALIZERS.spec(loc)
             for seed in range(seeds) if is_stochastic(loc) else [None]:

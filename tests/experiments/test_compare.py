@@ -4,6 +4,7 @@ import csv
 import json
 import sqlite3
 
+import numpy as np
 import pytest
 
 from experiments.compare import COLUMNS, compare, is_stochastic, parse_localizers
@@ -51,3 +52,28 @@ def test_localizer_names():
     with pytest.raises(ValueError, match="valid:"):
         parse_localizers("dead-reckoning,magic")
     assert not is_stochastic("dead-reckoning")
+
+
+def test_compare_datasets_per_robot_with_mean_over_robots(tmp_path):
+    """`compare --format mrclam --robot 1,2` runs each robot as a log and adds a row with
+    the mean over robots of each localizer."""
+    from typer.testing import CliRunner
+
+    from experiments.cli import app
+    from tests.hardware.datasets.datasets_testdata import write_mrclam
+
+    folder = write_mrclam(tmp_path / "mrclam")
+    out = tmp_path / "cmp"
+    args = ["compare", str(folder), "--format", "mrclam", "--robot", "1,2"]
+    res = CliRunner().invoke(app, [*args, "--localizers", "dead-reckoning", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    with open(out / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["log"] for r in rows] == ["mrclam_robot1", "mrclam_robot2"]
+    ates = [float(r["ate_rmse_m"]) for r in rows]
+    report = (out / "report.md").read_text()
+    mean_row = next(line for line in report.splitlines() if line.startswith("| mean over logs"))
+    assert f"| {np.mean(ates):.3f} ± {np.std(ates):.3f} |" in mean_row
+    # dataset options without --format are refused in one line
+    res = CliRunner().invoke(app, ["compare", str(folder), "--robot", "1", "--out", str(out)])
+    assert res.exit_code == 2 and "need --format" in res.output
