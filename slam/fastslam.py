@@ -80,6 +80,7 @@ from slam.measurement import (
     range_bearing_jacobians,
 )
 from slam.motion import Increment, MotionNoise, OdometryModel, apply_increment
+from slam.particle_paths import ParticlePaths
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 __all__ = [
@@ -121,6 +122,11 @@ class FastSlamConfig:
     observation's dimension (13.8 for range-bearing, 16.3 for tag pose); inf disables.
     resample_threshold: resample when N_eff < resample_threshold · n_particles.
     seed: seed of the numpy Generator behind every random draw.
+    smoothed_trajectory: `trajectory()` returns the weighted mean of the particles' whole
+    paths, read back through resampling (slam.particle_paths), sampled every
+    path_snapshot_s; the past then changes with every update (`revises_past`), and the
+    pipeline rebuilds the map along it. False: the filtered mean at each odometry message,
+    which jumps whenever the weights shift.
     """
 
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -136,6 +142,8 @@ class FastSlamConfig:
     gate_chi2: float | None = None
     resample_threshold: float = 0.5
     seed: int = 0
+    smoothed_trajectory: bool = True
+    path_snapshot_s: float = 0.1
 
     def __post_init__(self) -> None:
         if self.version not in (1, 2):
@@ -398,6 +406,9 @@ class FastSlam(Localizer):
         self.n_eff = float(n)
         self.n_eff_min = float(n)
         self.track = TrajectoryRecorder()
+        self.revises_past = bool(config.smoothed_trajectory)
+        self.paths = ParticlePaths(config.path_snapshot_s)
+        self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
@@ -568,9 +579,12 @@ class FastSlam(Localizer):
         if self.n_eff < self.config.resample_threshold * self.n:
             self._resample()
         self.track.amend(self._mean_pose())
+        self.revision += 1
 
     def _resample(self) -> None:
         idx = systematic_resample(self._w, self.rng)
+        if self.revises_past:
+            self.paths.resampled(idx)
         self.poses = self.poses[idx]
         self.pending = self.pending[idx]
         self.means = self.means[idx]
@@ -587,6 +601,8 @@ class FastSlam(Localizer):
 
     def _record(self, t: float) -> None:
         self.track.record(t, self._mean_pose())
+        if self.revises_past:
+            self.paths.snapshot(t, self.poses)
 
     # -- outputs ----------------------------------------------------------------------
     def estimate(self) -> PoseEstimate:
@@ -601,7 +617,14 @@ class FastSlam(Localizer):
         return PoseEstimate(t, mean, _symmetric(cov))
 
     def trajectory(self) -> Trajectory:
-        return self.track.trajectory()
+        """The smoothed path (config.smoothed_trajectory) or the filtered means."""
+        if not self.revises_past or not self.track:
+            return self.track.trajectory()
+        key = (self.revision, self.track.last_t)
+        if self._path_cache is None or self._path_cache[0] != key:
+            traj = self.paths.mean_path(self._w, self.track.last_t, self.poses)
+            self._path_cache = (key, traj)
+        return self._path_cache[1]
 
     def landmarks(self, full: bool = False) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Landmark id → (mean (2,), covariance 2×2) of the highest-weight particle; with

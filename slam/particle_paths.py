@@ -1,0 +1,77 @@
+"""Particle genealogies: each particle's whole path, read back through resampling.
+
+A particle filter over paths (FastSLAM) carries, in every particle, one hypothesis of
+the whole trajectory; resampling copies some particles' pasts and drops others'. Keeping
+periodic snapshots of the particles' poses and every resampling's parent indices lets
+the path of any current particle be read back: walk the events from the newest to the
+oldest, replacing each particle index by its parent at each resampling, and take its
+pose at each snapshot. Weighting the current particles' paths by their weights gives the
+smoothed (fixed-interval) path estimate of the filter, which unlike the filtered mean
+does not jump when weights shift: old snapshots converge to one common ancestor.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from slam.trajectory import Trajectory
+
+
+class ParticlePaths:
+    """Snapshots of particle poses (float32, at most one per `every_s` seconds) and the
+    resampling events between them."""
+
+    def __init__(self, every_s: float) -> None:
+        if not every_s >= 0.0:
+            raise ValueError(f"snapshot interval must be >= 0 s, got {every_s}")
+        self.every_s = float(every_s)
+        self._events: list[tuple[float, np.ndarray] | np.ndarray] = []  # snapshot | parents
+        self._last_t = -math.inf
+        self.snapshots = 0
+
+    def snapshot(self, t: float, poses: np.ndarray) -> None:
+        """Keep the poses (N×3) at time t if `every_s` has passed since the last one."""
+        if t - self._last_t < self.every_s or t <= self._last_t:
+            return
+        self._events.append((float(t), np.asarray(poses, dtype=np.float32).copy()))
+        self._last_t = float(t)
+        self.snapshots += 1
+
+    def resampled(self, parents: np.ndarray) -> None:
+        """The new particle k is a copy of the old particle parents[k]."""
+        self._events.append(np.asarray(parents, dtype=np.intp).copy())
+
+    def paths(self, current: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(times (T,), poses (T, N, 3)) of the ancestors of the current particles at every
+        snapshot, oldest first."""
+        n = len(current)
+        idx = np.arange(n)
+        times: list[float] = []
+        poses: list[np.ndarray] = []
+        for event in reversed(self._events):
+            if isinstance(event, tuple):
+                t, snap = event
+                if len(snap) != n:
+                    raise ValueError("particle count changed between snapshots")
+                times.append(t)
+                poses.append(snap[idx])
+            else:
+                idx = event[idx]
+        if not times:
+            return np.empty(0), np.empty((0, n, 3))
+        return np.array(times[::-1]), np.array(poses[::-1], dtype=float)
+
+    def mean_path(self, weights: np.ndarray, t_now: float, poses_now: np.ndarray) -> Trajectory:
+        """The weighted mean of the current particles' paths (circular mean of θ), ending
+        with their current poses at t_now."""
+        w = np.asarray(weights, dtype=float)
+        times, paths = self.paths(poses_now)
+        if len(times) and times[-1] >= t_now:
+            times, paths = times[:-1], paths[:-1]
+        times = np.append(times, t_now)
+        paths = np.concatenate([paths, np.asarray(poses_now, dtype=float)[None]])
+        xy = np.einsum("n,tnk->tk", w, paths[:, :, :2])
+        th = np.arctan2(np.sin(paths[:, :, 2]) @ w, np.cos(paths[:, :, 2]) @ w)
+        return Trajectory(times, np.column_stack([xy, th]))
