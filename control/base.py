@@ -6,6 +6,7 @@ per wheel). It never reads the simulator's truth: only what the walker's softwar
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any
@@ -22,7 +23,13 @@ class ControlInput:
     """Everything a controller may use at one tick.
 
     occupied_xy: occupied map cell centres in the world frame (N×2);
-    pose: (x, y, θ) from the localizer; v, omega: forward speed and yaw rate from it.
+    pose: (x, y, θ) from the localizer; v, omega: forward speed and yaw rate from it;
+    brake_nm: (left, right) brake torques currently applied, i.e. the last command sent
+    to the brakes [N·m] (NaN: unknown; the closed loop then uses its own last command);
+    pose_t, map_t, sensor_t: time of the localizer's latest update, of the latest depth
+    frame / scan integrated into the map, and of the latest odometry (encoder) message.
+    The safety layer ramps the brakes off when any of them is too old. NaN means "not
+    reported" (not checked); -inf means "reported, but nothing received yet" (stale).
     """
 
     t: float
@@ -30,6 +37,10 @@ class ControlInput:
     pose: np.ndarray
     v: float
     omega: float
+    brake_nm: tuple[float, float] = (math.nan, math.nan)
+    pose_t: float = math.nan
+    map_t: float = math.nan
+    sensor_t: float = math.nan
 
 
 class Controller(ABC):
@@ -38,7 +49,9 @@ class Controller(ABC):
 
 
 def _load_builtin() -> None:
-    import control.open_loop  # noqa: F401
+    import control.closed_loop
+    import control.open_loop
+    import control.potential_field  # noqa: F401
 
 
 CONTROLLERS: Registry[Controller] = Registry("controller", _load_builtin)

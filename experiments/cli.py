@@ -227,14 +227,24 @@ def replay(
     robot: RobotOpt = None,
     relations: RelationsOpt = None,
     time_offset: TimeOffsetOpt = None,
+    controller: Annotated[
+        str | None,
+        typer.Option(
+            help="recompute the brake commands with this controller on the replay's pose "
+            "and map, and compare them with the logged ones"
+        ),
+    ] = None,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
-    metrics."""
+    metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
+    from control.base import CONTROLLERS
     from experiments.run import replay_log
     from hardware.log import read_log
     from mapping.grid import GridConfig, MapModel
     from mapping.mapper import MapperConfig
 
+    if controller is not None:
+        CONTROLLERS.spec(controller)  # an unknown name: one line, before any work
     if map_model not in [m.value for m in MapModel]:
         raise ValueError(f"unknown map model '{map_model}'; valid: log-odds, view-count")
     mapper_config = MapperConfig(grid=GridConfig(resolution_m=resolution, model=map_model))
@@ -260,9 +270,47 @@ def replay(
             out,
             localizer=localizer,
             mapper_config=mapper_config,
+            controller=controller,
             progress=lambda t: update(elapsed(t)),
         )
     _print_metrics(res.metrics, res.files)
+    _print_drag(res.metrics)
+
+
+def _print_drag(metrics: dict) -> None:
+    """One line each for the drag metrics of a replay (experiments.drag)."""
+    lines = []
+    if "drag" in metrics and "local" in metrics["drag"]:
+        d = metrics["drag"]["local"]
+        braked = d["braked_turn"]
+        during = (
+            f"{braked['mean_m']:.3f} m in braked turns ({braked['frames']} frames), "
+            if braked["frames"]
+            else ""
+        )
+        lines.append(
+            f"obstacle drag in 1 s: {during}{d['other']['mean_m']:.3f} m otherwise; "
+            f"absolute {metrics['drag']['absolute']['all']['mean_m']:.3f} m"
+        )
+    if "over_steer" in metrics and metrics["over_steer"].get("episodes"):
+        o = metrics["over_steer"]
+        lines.append(
+            f"over-steer ({o['commands']} {o['controller']} commands vs the true pose and map): "
+            f"{o['over_steer_deg']:.1f}° over {o['episodes']} braking episodes "
+            f"(under-steer {o['under_steer_deg']:.1f}°)"
+        )
+    if "controller_replay" in metrics:
+        c = metrics["controller_replay"]
+        if c.get("commands"):
+            lines.append(
+                f"controller replay ({c['controller']}): {c['commands']} commands, RMS difference "
+                f"{c['rms_diff_nm']:.3f} N·m, same braked side "
+                f"{100 * c['same_side_fraction']:.1f} %"
+            )
+        else:
+            lines.append(f"controller replay ({c['controller']}): no brake commands in the log")
+    for line in lines:
+        console.print(line, highlight=False)
 
 
 @app.command()

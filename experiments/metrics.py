@@ -179,3 +179,56 @@ def relation_errors(est: Trajectory, relations: np.ndarray) -> dict[str, float]:
         "relations_rot_mean_deg": float(rot.mean()),
         "relations_rot_std_deg": float(rot.std()),
     }
+
+
+def braking_impulse_per_wheel(
+    commands: Sequence[BrakeCommand], torque_off_nm: float, t_end: float
+) -> dict[str, float]:
+    """∫ max(τ − τ_off, 0) dt [N·m·s] of each wheel and their sum, each command held until
+    the next (or t_end): `braking_impulse` split by wheel."""
+    if not commands:
+        return {"left_nms": 0.0, "right_nms": 0.0, "total_nms": 0.0}
+    dt = np.diff([c.t for c in commands] + [max(t_end, commands[-1].t)])
+    left = np.maximum(np.array([c.left_nm for c in commands]) - torque_off_nm, 0.0)
+    right = np.maximum(np.array([c.right_nm for c in commands]) - torque_off_nm, 0.0)
+    out = {"left_nms": float(left @ dt), "right_nms": float(right @ dt)}
+    out["total_nms"] = out["left_nms"] + out["right_nms"]
+    return out
+
+
+def braked_side(left_nm: np.ndarray, right_nm: np.ndarray, threshold_nm: float) -> np.ndarray:
+    """+1 where the left brake exceeds the right by more than threshold (a left turn), −1
+    where the right does, 0 otherwise (released, or both alike)."""
+    diff = np.asarray(left_nm, float) - np.asarray(right_nm, float)
+    return np.where(diff > threshold_nm, 1, np.where(diff < -threshold_nm, -1, 0))
+
+
+def command_differences(
+    reference: np.ndarray, other: np.ndarray, side_threshold_nm: float
+) -> dict[str, float]:
+    """How far one brake-command series is from another at the same ticks.
+
+    Both are N×2 (left, right) torques [N·m]. Returns the mean |Δτ| per wheel, the RMS of
+    Δτ over both wheels, the largest |Δτ|, and the share of ticks where both brake the same
+    side (`braked_side`, released counts as a side) — over all ticks and over the ticks
+    where either one brakes a side.
+    """
+    a, b = np.asarray(reference, float).reshape(-1, 2), np.asarray(other, float).reshape(-1, 2)
+    n = len(a)
+    if n == 0:
+        return {"commands": 0}
+    d = b - a
+    sa = braked_side(a[:, 0], a[:, 1], side_threshold_nm)
+    sb = braked_side(b[:, 0], b[:, 1], side_threshold_nm)
+    either = (sa != 0) | (sb != 0)
+    return {
+        "commands": n,
+        "mean_abs_diff_left_nm": float(np.mean(np.abs(d[:, 0]))),
+        "mean_abs_diff_right_nm": float(np.mean(np.abs(d[:, 1]))),
+        "rms_diff_nm": float(np.sqrt(np.mean(d**2))),
+        "max_abs_diff_nm": float(np.max(np.abs(d))),
+        "same_side_fraction": float(np.mean(sa == sb)),
+        "same_side_fraction_braking": float(np.mean(sa[either] == sb[either]))
+        if np.any(either)
+        else math.nan,
+    }

@@ -16,14 +16,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from control.base import ControlInput, Controller
+from control.safety import SafeController, SafetyConfig
 from hardware.calibration import WalkerCalibration
 from hardware.messages import (
     BrakeCommand,
     Collision,
     DepthFrame,
+    EncoderTicks,
     GroundTruthPose,
     LaserScan,
     Message,
+    VelocityOdometry,
 )
 from mapping.mapper import MapperConfig, OccupancyMapper
 from slam.base import Localizer
@@ -156,10 +159,12 @@ class VelocityEstimator:
 @dataclass(frozen=True)
 class LoopConfig:
     """Closed-loop timing: the controller runs at rate_hz; its command reaches the brakes
-    latency_s later (computation + serial + brake driver)."""
+    latency_s later (computation + serial + brake driver). Every command passes through
+    the safety layer configured by `safety` (control.safety)."""
 
     rate_hz: float = 10.0
     latency_s: float = 0.03
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
 
 
 def run_closed_loop(
@@ -173,16 +178,29 @@ def run_closed_loop(
     """Run a simulator in closed loop until it is done.
 
     Each tick: advance the simulator, feed its messages through the pipeline, compute a
-    brake command from the localizer's pose and the shared map, and apply it after the
-    latency. Every message and command also goes to `sink` (e.g. a log writer).
+    brake command from the localizer's pose and the shared map, pass it through the
+    safety layer (unless `controller` already is a SafeController) and apply it after
+    the latency. The controller sees the torques of the last applied command and the
+    times of the latest localizer update, depth frame / scan and odometry message the
+    pipeline has received. Every message and command also goes to `sink` (e.g. a log
+    writer).
     """
     period = 1.0 / loop.rate_hz
     velocity = VelocityEstimator()
+    if not isinstance(controller, SafeController):
+        controller = SafeController(controller, pipeline.calibration, loop.safety)
+    off = pipeline.calibration.brake.torque_off_nm
+    applied = (off, off)
+    latest = {"map": -math.inf, "sensor": -math.inf}
     k = 0
 
     def advance(t: float) -> None:
         for msg in sim.step_until(t):
             pipeline.feed(msg)
+            if isinstance(msg, DepthFrame | LaserScan):
+                latest["map"] = msg.t
+            elif isinstance(msg, EncoderTicks | VelocityOdometry):
+                latest["sensor"] = msg.t
             if sink is not None:
                 sink(msg)
 
@@ -194,11 +212,23 @@ def run_closed_loop(
             break
         est = pipeline.localizer.estimate()
         v, omega = velocity.update(t, est.pose)
-        cmd = controller.command(ControlInput(t, pipeline.mapper.occupied_xy(), est.pose, v, omega))
+        inp = ControlInput(
+            t,
+            pipeline.mapper.occupied_xy(),
+            est.pose,
+            v,
+            omega,
+            brake_nm=applied,
+            pose_t=est.t if math.isfinite(est.t) else -math.inf,
+            map_t=latest["map"],
+            sensor_t=latest["sensor"],
+        )
+        cmd = controller.command(inp)
         pipeline.feed(cmd)
         if sink is not None:
             sink(cmd)
         advance(t + loop.latency_s)
         sim.apply(cmd)
+        applied = (cmd.left_nm, cmd.right_nm)
         if progress is not None:
             progress(sim.t)

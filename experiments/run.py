@@ -18,10 +18,13 @@ from typing import Any
 import numpy as np
 
 from control.base import CONTROLLERS
+from experiments import drag
 from experiments import metrics as M
+from experiments.drag import DragConfig
 from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
 from hardware.datasets import Dataset
 from hardware.log import LogWriter, TrialLog, read_log
+from hardware.registry import UnknownNameError
 from hardware.sim.simulator import SimConfig, Simulator
 from hardware.sim.world import World, load_world
 from mapping.export import save_map_server, save_png
@@ -117,6 +120,8 @@ def replay_log(
     mapper_config: MapperConfig | None = None,
     figures: bool = True,
     reference_map: bool = True,
+    controller: str | None = None,
+    drag_config: DragConfig | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> ReplayResult:
     """Run a recorded trial (a log path, an opened log or an opened dataset) through a
@@ -124,7 +129,11 @@ def replay_log(
     the source has it) and the run's config.
 
     reference_map: also map the same frames at the true poses (when the log has ground
-    truth), for the side-by-side figure and the reference map scores.
+    truth), for the side-by-side figure, the reference map scores and the over-steer
+    metric (experiments.drag).
+    controller: recompute the brake commands with this controller (registry name) at each
+    logged command, on the replay's pose and map, and compare them with the logged ones
+    (`controller_replay` in the metrics); over-steer is then measured on them.
     """
     trial = log if isinstance(log, TrialLog | Dataset) else read_log(log)
     log_path = trial.path if isinstance(trial, TrialLog) else f"{trial.name}"
@@ -139,10 +148,33 @@ def replay_log(
         initial_pose=initial_pose,
         landmark_map=true_landmarks,
     )
+    if controller is not None:
+        CONTROLLERS.spec(controller)  # an unknown name fails before the replay
     pipeline = Pipeline(loc, cal, mapper_config, reference_map=reference_map)
+    drag_cfg = drag_config or DragConfig()
+    outlines = [p for _, p in world.footprint_polygons(*MAP_BAND_M)] if world is not None else []
+    truth = drag.TruthTracker()
+    phantom = drag.PhantomSeries(pipeline, outlines, drag_cfg) if world is not None else None
+    frame_drag = drag.FrameDrag(pipeline, truth, drag_cfg)
+    recomputer = (
+        drag.CommandRecomputer(controller, cal, drag.estimated_input(pipeline))
+        if controller is not None
+        else None
+    )
+    recorded_controller = (trial.metadata.get("config") or {}).get("controller")
+    steer_name = controller or _registered_controller(recorded_controller)
+    reference_commands = (
+        drag.CommandRecomputer(steer_name, cal, drag.true_input(pipeline, truth))
+        if steer_name is not None and pipeline.reference is not None
+        else None
+    )
+    observers = [
+        o for o in (truth, phantom, frame_drag, recomputer, reference_commands) if o is not None
+    ]
+    source = drag.Observed(trial.messages(), observers)
     t0 = time.perf_counter()
-    pipeline.run(trial.messages(), progress)
-    runtime = time.perf_counter() - t0
+    pipeline.run(source, progress)
+    runtime = time.perf_counter() - t0 - source.seconds  # the evaluation left out
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -156,6 +188,7 @@ def replay_log(
         "messages": rec.counts,
         "runtime_s": runtime,
         "realtime_factor": duration / runtime if runtime > 0 else math.inf,
+        "evaluation_runtime_s": source.seconds,  # drag metrics during the replay
     }
     estimated_landmarks = None
     if true_landmarks is not None and hasattr(loc, "landmarks"):
@@ -179,9 +212,7 @@ def replay_log(
             )
     if "relations" in trial.metadata and len(est) > 1:
         metrics.update(M.relation_errors(est, np.array(trial.metadata["relations"]["rows"])))
-    outlines = []
     if world is not None:
-        outlines = [p for _, p in world.footprint_polygons(*MAP_BAND_M)]
         area = pipeline.mapper.grid.resolution**2
         metrics.update(M.map_scores(pipeline.mapper.occupied_xy(), area, outlines))
         if pipeline.reference is not None and gt is not None:
@@ -193,6 +224,24 @@ def replay_log(
         metrics["braking_impulse_nms"] = M.braking_impulse(
             rec.commands, cal.brake.torque_off_nm, rec.t_last
         )
+        metrics["braking_impulse"] = M.braking_impulse_per_wheel(
+            rec.commands, cal.brake.torque_off_nm, rec.t_last
+        )
+    files.update(
+        _drag_metrics(
+            metrics,
+            out,
+            pipeline,
+            gt,
+            phantom,
+            frame_drag,
+            recomputer,
+            reference_commands,
+            drag_cfg,
+            figures,
+            trial.metadata.get("config") or {},
+        )
+    )
 
     files["map_png"] = save_png(
         pipeline.mapper.grid,
@@ -216,7 +265,82 @@ def replay_log(
         "localizer": localizer,
         "localizer_config": _jsonable(loc.config),
         "mapper_config": _jsonable(pipeline.mapper.config),
+        "controller": controller,
+        "drag_config": asdict(drag_cfg),
         "recorded_config": trial.metadata.get("config"),
     }
     files["config"].write_text(json.dumps(run_config, indent=2, default=str) + "\n")
     return ReplayResult(out, metrics, duration, files, pipeline, world)
+
+
+def _registered_controller(name: Any) -> str | None:
+    """`name` if it is a registered controller (a recorded trial's), else None."""
+    if not isinstance(name, str):
+        return None
+    try:
+        CONTROLLERS.spec(name)
+    except UnknownNameError:
+        return None
+    return name
+
+
+def _drag_metrics(
+    metrics: dict[str, Any],
+    out: Path,
+    pipeline: Pipeline,
+    gt,
+    phantom: drag.PhantomSeries | None,
+    frame_drag: drag.FrameDrag,
+    recomputer: drag.CommandRecomputer | None,
+    reference_commands: drag.CommandRecomputer | None,
+    cfg: DragConfig,
+    figures: bool,
+    recorded: dict[str, Any],
+) -> dict[str, Path]:
+    """Add the drag metrics (experiments.drag) to `metrics`; write their CSVs and figures."""
+    rec, cal = pipeline.recorded, pipeline.calibration
+    off = cal.brake.torque_off_nm
+    files: dict[str, Path] = {}
+    if phantom is not None:
+        phantom.finish(rec.t_last)
+        metrics["phantom_area_over_time"] = phantom.summary(rec.commands, off)
+        files["phantom_csv"] = phantom.write_csv(out / "phantom_area.csv")
+    frame_series: dict[str, np.ndarray] = {}
+    if gt is not None and frame_drag.frames.t:
+        metrics["drag"], frame_series = frame_drag.summary(rec.commands, off, gt)
+        if frame_series:
+            files["drag_csv"] = drag.write_frames_csv(frame_series, out / "drag_frames.csv")
+    if recomputer is not None:
+        summary = drag.controller_replay_summary(
+            recomputer, cal, rec.t_last, cfg.brake_threshold_nm
+        )
+        metrics["controller_replay"] = {
+            **summary,
+            "localizer": metrics.get("localizer"),
+            "recorded_controller": recorded.get("controller"),
+            "recorded_localizer": recorded.get("localizer"),
+            "safety_layer": recomputer.safety_layer,
+        }
+        files["controller_replay_csv"] = recomputer.write_csv(out / "controller_replay.csv")
+        if figures:
+            files["controller_replay_png"] = drag.plot_controller_replay(
+                out / "controller_replay.png", recomputer
+            )
+    steer = None
+    if reference_commands is not None and gt is not None and rec.commands:
+        t, logged, required = reference_commands.arrays()
+        tested = recomputer.arrays()[2] if recomputer is not None else logged
+        summary, episodes = drag.over_steer(t, tested, required, rec.t_last, cal, cfg, gt)
+        metrics["over_steer"] = {
+            "controller": reference_commands.name,
+            "commands": "recomputed" if recomputer is not None else "logged",
+            **summary,
+        }
+        files["over_steer_csv"] = drag.write_episodes_csv(episodes, out / "over_steer.csv")
+        if summary["ticks"]:
+            steer = (t, tested, required)
+    if figures and (phantom is not None or frame_series or steer is not None):
+        files["drag_png"] = drag.plot_drag(
+            out / "drag.png", phantom, frame_series, steer, rec.commands, cal, cfg
+        )
+    return files
