@@ -184,3 +184,20 @@ def test_trajectory_recorder_keeps_the_newest_pose_per_time():
     tr = rec.trajectory()
     assert list(tr.t) == [0.0, 1.0] and rec.last_t == 1.0
     assert np.allclose(tr.poses, [[0.0, 0.0, 0.0], [2.0, 0.0, 0.1]])
+
+
+def test_velocity_noise_does_not_depend_on_message_rate():
+    """Velocity-odometry errors are a random walk in time: the same 2 s of motion logged at
+    10 Hz or at 100 Hz ends with the same covariance (per-step σ ∝ dt would shrink it 10×
+    at the higher rate, making every filter overconfident on fast logs)."""
+    cal = WalkerCalibration()
+    covs = []
+    for rate in (10, 100):
+        dr = create("dead-reckoning", cal)
+        for k in range(2 * rate + 1):
+            dr.process(VelocityOdometry(k / rate, 0.3, 0.0))
+        covs.append(dr.estimate().covariance)
+    assert np.allclose(covs[0], covs[1], rtol=0.05, atol=1e-12)
+    noise = DeadReckoningConfig().noise
+    # straight at 0.3 m/s for 2 s: var(x) = (k_v·v)²·2 s
+    assert covs[1][0, 0] == pytest.approx((noise.velocity_frac * 0.3) ** 2 * 2.0, rel=1e-6)
