@@ -199,3 +199,27 @@ def test_new_controllers_run_on_the_course(name):
     assert len(cmds) >= 140 and all(c.source == name for c in cmds)
     assert all(off <= x <= full for c in cmds for x in (c.left_nm, c.right_nm))
     assert any(max(c.left_nm, c.right_nm) > off + 0.5 for c in cmds)
+
+
+def test_closed_loop_rebuilds_a_smoothers_map_during_the_run(tmp_path):
+    """With a smoother the controller reads a map rebuilt along the smoothed path every
+    map_rebuild_s; with 0 the map is only rebuilt after the run."""
+    rebuilds = {}
+    for every in (0.0, 2.0):
+        sim = Simulator(load_world("thesis-course"), SimConfig(seed=0, duration_s=12.0))
+        loc = create("gtsam", sim.calibration, initial_pose=sim.world.start_pose)
+        pipeline = Pipeline(loc, sim.calibration, reference_map=False)
+        calls = []
+        original = pipeline.rebuild_map
+        pipeline.rebuild_map = lambda calls=calls, original=original: (
+            calls.append(original()) or calls[-1]
+        )
+        run_closed_loop(
+            sim,
+            pipeline,
+            create_controller("open-loop", sim.calibration),
+            LoopConfig(map_rebuild_s=every),
+        )
+        rebuilds[every] = sum(calls)
+    assert rebuilds[0.0] == 0
+    assert rebuilds[2.0] >= 4  # 12 s of trial: at 2, 4, 6, 8, 10 s whenever gtsam revised
