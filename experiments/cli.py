@@ -517,3 +517,6 @@ def info(log: Annotated[Path, typer.Argument(help="trial log (.mcap)")]) -> None
     cfg = trial.metadata.get("config")
     if cfg:
         console.print(json.dumps({k: v for k, v in cfg.items() if not isinstance(v, dict)}))
+
+
+__import__("experiments.study_commands").study_commands.register(app)  # course-study, corner-study

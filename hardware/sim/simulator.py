@@ -29,7 +29,7 @@ from hardware.sim.depth_camera import DepthCameraConfig, SimDepthCamera
 from hardware.sim.dynamics import Brakes, WalkerParams, WalkerState, step
 from hardware.sim.slip import Encoders, SlipModel, surface_coefficient
 from hardware.sim.tag_camera import SimTagCamera, TagCameraConfig
-from hardware.sim.user import ConstantPush, RouteFollower, UserParams
+from hardware.sim.user import ConstantPush, RouteFollower, UserParams, UserProfile
 from hardware.sim.world import COLLISION_BAND_M, World
 
 # Walker parts in the walker frame (x forward, y left; rear-axle origin): the frame is
@@ -58,6 +58,8 @@ class SimConfig:
 
     Rates must divide physics_rate_hz. The software's calibration is the true walker
     plus the *_error_m values (the thesis code used a 203 mm wheel; it measures 204 mm).
+    user_profile: this trial's user (route offset and wander, push, impairment; see
+    `UserProfile`) applied to `user` and the world's route; None: `user` on the route.
     """
 
     surface: str | float = "dusty"
@@ -74,6 +76,7 @@ class SimConfig:
     track_error_m: float = 0.0
     walker: WalkerParams = field(default_factory=WalkerParams)
     user: UserParams = field(default_factory=UserParams)
+    user_profile: UserProfile | None = None
     depth: DepthCameraConfig = field(default_factory=DepthCameraConfig)
     tags: TagCameraConfig = field(default_factory=TagCameraConfig)
 
@@ -125,7 +128,13 @@ class Simulator:
         self.slip = SlipModel(config.surface, w.brake_torque_max_nm / w.wheel_radius_m, rng_slip)
         # The encoders turn with the *true* wheels; counts_per_rev as calibrated.
         self.encoders = Encoders(w.wheel_diameter_m, self.calibration.counts_per_rev)
-        self.user = user or RouteFollower(world.route, self.state, w, config.user, rng_user)
+        if user is None:
+            params, route = config.user, world.route
+            if config.user_profile is not None:
+                params = config.user_profile.apply(params)
+                route = config.user_profile.walk_route(route)
+            user = RouteFollower(route, self.state, w, params, rng_user)
+        self.user = user
         self.depth_camera = SimDepthCamera(world, self.calibration, config.depth, rng_depth)
         self.tag_camera = SimTagCamera(world, self.calibration, config.tags, rng_tags)
         self.dt = 1.0 / config.physics_rate_hz

@@ -7,12 +7,18 @@ by pure pursuit through differential handle force, and feel the brakes only thro
 walker's dynamics. A collision is felt: the user steps back briefly, re-orients (their
 belief snaps back to the truth) and carries on. `ConstantPush` applies fixed handle
 forces (physics tests, parameter sweeps).
+
+`UserProfile` makes one user differ from another in a study: a seeded draw (from the
+trial seed, so the same trial index is the same user under every controller) of where
+they walk relative to the route, how fast and how hard they push, and how impaired their
+sense of heading is. Without a profile the simulator's user is exactly `UserParams`
+walking `World.route`.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -51,6 +57,102 @@ class UserParams:
     backoff_turn_rad_s: float = 0.4
     stuck_s: float = 1.0
 
+
+@dataclass(frozen=True)
+class UserProfile:
+    """How one simulated user of a study differs from the nominal user and route.
+
+    Route (what they actually try to walk): route_offset_m, a constant sideways offset
+    from the course route (+ = to the left of the direction of travel: some users keep
+    to one side); route_wander_m, the amplitude of a smooth sideways wander around that,
+    a sum of three sinusoids with wavelengths route_wander_wavelength_m × (1, 0.53, 0.29)
+    and random phases drawn from wander_seed. Offset and wander fade in over the first
+    and out over the last ROUTE_TAPER_M of the route, so the user starts at the start pose
+    and ends where the course ends.
+    Push: speed_scale multiplies the preferred speed; push_scale the largest push and
+    steering forces (how hard they are able / willing to push).
+    Impairment: heading_drift_scale multiplies the random walk of their sense of heading;
+    heading_bias_rad_per_m and distance_scale_error are added to the base values.
+
+    `sample(seed)` draws a profile (distributions in its docstring); `apply(params)` and
+    `walk_route(route)` give the user's parameters and route. The identity profile
+    (`UserProfile()`) leaves the parameters unchanged; its route is the course route
+    resampled every 0.1 m.
+    """
+
+    route_offset_m: float = 0.0
+    route_wander_m: float = 0.0
+    route_wander_wavelength_m: float = 4.0
+    wander_seed: int = 0
+    speed_scale: float = 1.0
+    push_scale: float = 1.0
+    heading_drift_scale: float = 1.0
+    heading_bias_rad_per_m: float = 0.0
+    distance_scale_error: float = 0.0
+
+    @classmethod
+    def sample(cls, seed: int) -> UserProfile:
+        """A user drawn from `seed` (deterministic): offset N(0, 0.05 m) clipped to
+        ±0.1 m; wander amplitude U(0, 0.08) m with wavelength U(2.5, 6) m; speed scale
+        U(0.85, 1.15) (0.64–0.86 m/s with the default 0.75); push scale U(0.8, 1.25);
+        heading-drift scale U(0.5, 1.5); heading bias N(0, 0.005) rad/m; distance error
+        N(0, 0.03)."""
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), PROFILE_STREAM]))
+        return cls(
+            route_offset_m=round(float(np.clip(rng.normal(0.0, 0.05), -0.1, 0.1)), 4),
+            route_wander_m=round(float(rng.uniform(0.0, 0.08)), 4),
+            route_wander_wavelength_m=round(float(rng.uniform(2.5, 6.0)), 3),
+            wander_seed=int(rng.integers(0, 2**31 - 1)),
+            speed_scale=round(float(rng.uniform(0.85, 1.15)), 4),
+            push_scale=round(float(rng.uniform(0.8, 1.25)), 4),
+            heading_drift_scale=round(float(rng.uniform(0.5, 1.5)), 4),
+            heading_bias_rad_per_m=round(float(rng.normal(0.0, 0.005)), 5),
+            distance_scale_error=round(float(rng.normal(0.0, 0.03)), 4),
+        )
+
+    def apply(self, params: UserParams) -> UserParams:
+        """`params` as this user has them."""
+        return replace(
+            params,
+            speed_mps=params.speed_mps * self.speed_scale,
+            max_push_n=params.max_push_n * self.push_scale,
+            max_steer_n=params.max_steer_n * self.push_scale,
+            heading_drift_rad_per_sqrt_m=params.heading_drift_rad_per_sqrt_m
+            * self.heading_drift_scale,
+            heading_bias_rad_per_m=params.heading_bias_rad_per_m + self.heading_bias_rad_per_m,
+            distance_scale_error=params.distance_scale_error + self.distance_scale_error,
+        )
+
+    def walk_route(self, route: np.ndarray) -> np.ndarray:
+        """The route this user tries to walk: `route` resampled every 0.1 m and shifted
+        sideways by the offset plus the wander (tapered at both ends)."""
+        route = np.asarray(route, dtype=float)
+        seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
+        arclen = np.concatenate([[0.0], np.cumsum(seg)])
+        n = max(math.ceil(arclen[-1] / 0.1), 1) + 1
+        s = np.linspace(0.0, arclen[-1], n)
+        pts = np.column_stack(
+            [np.interp(s, arclen, route[:, 0]), np.interp(s, arclen, route[:, 1])]
+        )
+        tangent = np.gradient(pts, axis=0)
+        tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+        normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
+        phases = np.random.default_rng(self.wander_seed).uniform(0.0, 2.0 * math.pi, 3)
+        wavelengths = self.route_wander_wavelength_m * np.array(WANDER_HARMONICS)
+        wander = math.sqrt(2.0 / 3.0) * np.sum(
+            np.sin(2.0 * math.pi * s[:, None] / wavelengths + phases), axis=1
+        )
+        taper = np.clip(np.minimum(s, arclen[-1] - s) / ROUTE_TAPER_M, 0.0, 1.0)
+        lateral = taper * (self.route_offset_m + self.route_wander_m * wander)
+        return pts + lateral[:, None] * normal
+
+
+# Seed-sequence stream of the profile draw, apart from the simulator's own streams.
+PROFILE_STREAM = 0x05E4
+# Wavelengths of the wander's sinusoids, relative to route_wander_wavelength_m (the three
+# have unit total variance: each sin has variance 1/2, scaled by √(2/3)).
+WANDER_HARMONICS = (1.0, 0.53, 0.29)
+ROUTE_TAPER_M = 1.0
 
 ROUTE_STEP_M = 0.02
 SEARCH_BEHIND = round(0.5 / ROUTE_STEP_M)

@@ -1,0 +1,132 @@
+"""`NAME.FIELD=VALUE` overrides of registered configs (controllers, localizers).
+
+A study names controllers and localizers by their registry names; `--set
+open-loop.d_max_m=1.75` changes one field of that controller's typed config (applied
+with `dataclasses.replace`, so the config's own validation runs), and `--sweep
+closed-loop.D=9,16,23,30` lists several values of one field. Values are converted to the
+field's declared type (float, int, bool or str).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from hardware.registry import Registry
+
+
+def _field_types(config_type: type) -> dict[str, Any]:
+    try:
+        hints = typing.get_type_hints(config_type)
+    except Exception:  # unresolvable annotations: fall back to the defaults' types
+        hints = {}
+    out = {}
+    for f in dataclasses.fields(config_type):
+        t = hints.get(f.name)
+        if t is None and f.default is not dataclasses.MISSING:
+            t = type(f.default)
+        out[f.name] = t
+    return out
+
+
+def convert(value: str, typ: Any, where: str) -> Any:
+    """`value` (text) as `typ`; ValueError naming `where` when it does not fit."""
+    if isinstance(value, str):
+        text = value.strip()
+    else:
+        return value
+    try:
+        if typ is bool:
+            low = text.lower()
+            if low in ("1", "true", "yes", "on"):
+                return True
+            if low in ("0", "false", "no", "off"):
+                return False
+            raise ValueError
+        if typ is int:
+            return int(text)
+        if typ is float:
+            return float(text)
+    except ValueError:
+        raise ValueError(f"{where}: '{value}' is not a valid {typ.__name__}") from None
+    if typ is str:
+        return text
+    # Other annotations (unions, tuples): try a number, else keep the text.
+    try:
+        return float(text) if any(c in text for c in ".eE") else int(text)
+    except ValueError:
+        return text
+
+
+def split_key(key: str) -> tuple[str, str]:
+    """'open-loop.d_max_m' → ('open-loop', 'd_max_m')."""
+    name, dot, field = key.strip().rpartition(".")
+    if not dot or not name or not field:
+        raise ValueError(f"expected NAME.FIELD (e.g. open-loop.d_max_m), got '{key}'")
+    return name, field
+
+
+def parse_assignment(text: str) -> tuple[str, str, list[str]]:
+    """'closed-loop.D=9,16' → ('closed-loop', 'D', ['9', '16'])."""
+    key, eq, values = text.partition("=")
+    if not eq or not values.strip():
+        raise ValueError(f"expected NAME.FIELD=VALUE[,VALUE...], got '{text}'")
+    name, field = split_key(key)
+    vals = [v.strip() for v in values.split(",") if v.strip()]
+    return name, field, vals
+
+
+def field_type(registry: Registry, name: str, field: str) -> Any:
+    """The declared type of `field` in `name`'s config (UnknownNameError / ValueError)."""
+    types = _field_types(registry.spec(name).config_type)
+    if field not in types:
+        raise ValueError(
+            f"{registry.kind} '{name}' has no config field '{field}'; fields: "
+            + (", ".join(types) or "(none)")
+        )
+    return types[field]
+
+
+def typed_overrides(registry: Registry, name: str, overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """`overrides` ({field: text or value}) converted to the fields' types."""
+    return {
+        f: convert(v, field_type(registry, name, f), f"{name}.{f}") for f, v in overrides.items()
+    }
+
+
+def build_config(registry: Registry, name: str, overrides: Iterable[tuple[str, Any]] = ()) -> Any:
+    """`name`'s default config with `overrides` ((field, value) pairs) replaced; runs the
+    config's validation (ValueError)."""
+    cfg = registry.spec(name).config_type()
+    over = typed_overrides(registry, name, dict(overrides))
+    if not over:
+        return cfg
+    try:
+        return dataclasses.replace(cfg, **over)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{name}: {e}") from None
+
+
+def parse_sets(
+    texts: Iterable[str], registries: Mapping[str, Registry], allowed: Iterable[str]
+) -> dict[str, dict[str, Any]]:
+    """`--set NAME.FIELD=VALUE` options → {name: {field: value}} with typed values.
+
+    `registries` maps each allowed name to its registry (controller or localizer)."""
+    allowed = list(allowed)
+    out: dict[str, dict[str, Any]] = {}
+    for text in texts:
+        name, field, vals = parse_assignment(text)
+        if len(vals) != 1:
+            raise ValueError(f"--set takes one value, got '{text}' (use --sweep for several)")
+        if name not in registries:
+            raise ValueError(
+                f"--set {text}: '{name}' is not in this study; names: {', '.join(allowed)}"
+            )
+        reg = registries[name]
+        out.setdefault(name, {})[field] = convert(
+            vals[0], field_type(reg, name, field), f"{name}.{field}"
+        )
+    return out
