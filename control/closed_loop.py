@@ -4,7 +4,7 @@ Each tick the controller
 
 1. estimates the user's handle forces from the measured forward speed v, yaw rate φ̇ and
    the brake forces currently applied, by inverting the steady-state dynamics (5.11) —
-   by default with the inertial terms m v̇, I φ̈ added and low-passed (see below);
+   optionally with the inertial terms m v̇, I φ̈ added and low-passed (see below);
 2. finds the nearest obstacle ahead (distance d from the depth camera) and, if it is
    closer than d_max, picks the turn side from the polar free-space integrals (§5.2) and
    the desired radius R_d = ±(d + radius_offset_m) (+ = turn left);
@@ -33,8 +33,17 @@ the thesis's form never settles: the inner brake cycles between its minimum and 
 and the radius between ~1.2 and 3.6 m (period ~3.5 s). Adding the inertial terms m v̇ and
 I φ̈ (the full dynamics 5.2–5.3 instead of their steady state) and a 0.3 s low-pass on the
 estimate makes it settle: within 10 % of R_d 1–4 s after starting from rest, within 2 %
-after that (tests/experiments/test_closed_loop_sim.py). mass_kg = yaw_inertia = 0 and
-handle_filter_s = 0 give the thesis's steady-state estimate.
+after that (tests/experiments/test_closed_loop_sim.py).
+
+Why the default is nevertheless 5.11 alone (mass_kg = yaw_inertia = handle_filter_s = 0):
+it is the thesis's controller, and its over-estimate of the push right after the brakes
+engage is what makes it turn corners. The thesis says as much (§6.3.3: the handle force
+prediction "would be artificially high, causing the control algorithm to apply more force
+to the brakes and thus a tighter turn"). In the simulated corner test (1.0–1.1 m/s, d_max
+1.25 m) the steady-state form turns 97° and clears the wall by 2–6 cm, as the thesis's
+Fig 6.7 shows for 1250 mm, while the settling form brakes for R_d = d + 0.5 m — a circle
+that cannot clear a wall d ahead — and hits it head-on. The settling form is the better
+radius tracker; the radius rule is what it exposes.
 """
 
 from __future__ import annotations
@@ -52,8 +61,7 @@ from hardware.messages import BrakeCommand
 
 @dataclass(frozen=True)
 class ClosedLoopConfig:
-    """Closed-loop braking parameters (defaults: the thesis code's values, except the
-    inertial terms and the filter of the handle-force estimate).
+    """Closed-loop braking parameters (defaults: the thesis code's values).
 
     D: translational damping the controller assumes [N·s/m] (measured 9–30; 16 used);
     D_phi: rotational damping it assumes [N·m·s/rad] (7 in the thesis code; the spin
@@ -67,14 +75,18 @@ class ClosedLoopConfig:
     arc_half_deg / n_arcs: the turn-decision fan (±60°, 32 sub-arcs: the closed-loop code);
     unseen_free_radius_m: free radius of arcs outside the view with no obstacle (1 m in the
     closed-loop code);
+    latch_turn: keep the side chosen when a braking episode starts until it ends (as
+    OpenLoopConfig.latch_turn; False: decide every tick, as the thesis code);
     min_speed_mps: brakes act only while moving forward faster than this;
     wheel_speed_eps_mps: the brake force applied opposes each wheel's rolling and is
     scaled down linearly below this wheel speed (as the simulated brakes) when the current
     brake forces are reconstructed from the applied torques;
     mass_kg / yaw_inertia: the m v̇ and I φ̈ terms added to the handle-force estimate
-    (thesis values 31.5 kg, 8.69 kg·m²; 0 and 0 give the thesis's steady-state eq 5.11);
+    (0 and 0: the thesis's steady-state eq 5.11; the walker's values are 31.5 kg and
+    8.69 kg·m², which with handle_filter_s 0.3 make a commanded radius settle — see the
+    module docstring for why that is not the default);
     handle_filter_s: time constant of a first-order low-pass on the estimated handle
-    forces [s] (0.3; 0: none).
+    forces [s] (0: none).
     v and φ̇ come from the pipeline, averaged over the last two control steps (thesis);
     v̇ and φ̈ are their differences between ticks. See "Why the estimate is not 5.11
     alone" in the module docstring.
@@ -93,9 +105,10 @@ class ClosedLoopConfig:
     unseen_free_radius_m: float = 1.0
     min_speed_mps: float = 0.05
     wheel_speed_eps_mps: float = 0.02
-    mass_kg: float = 31.5
-    yaw_inertia: float = 8.69
-    handle_filter_s: float = 0.3
+    mass_kg: float = 0.0
+    yaw_inertia: float = 0.0
+    handle_filter_s: float = 0.0
+    latch_turn: bool = True
 
     def __post_init__(self) -> None:
         if not 0 <= self.d_min_m < self.d_max_m:
@@ -272,9 +285,12 @@ class ClosedLoop(Controller):
             far,
             cfg.unseen_free_radius_m,
         )
+        direction = (
+            self.last_direction if cfg.latch_turn and self.last_direction else turn.direction
+        )
         if d <= cfg.d_min_m:
-            return turn.direction * cfg.r_b
-        return turn.direction * (d + cfg.radius_offset_m)
+            return direction * cfg.r_b
+        return direction * (d + cfg.radius_offset_m)
 
     def applied_brake_forces(self, inp: ControlInput) -> tuple[float, float]:
         """Brake forces at the ground [N] from the torques currently applied (the input's,

@@ -24,7 +24,11 @@ class OpenLoopConfig:
     half_width_m: half-width of the band ahead searched for obstacles (walker 0.69 m);
     arc_half_deg / n_arcs: the turn-decision fan (±45°, 32 sub-arcs);
     unseen_free_radius_m: free radius of arcs outside the view with no obstacle (0 in the
-    thesis); min_speed_mps: brakes act only while moving forward faster than this.
+    thesis); min_speed_mps: brakes act only while moving forward faster than this;
+    latch_turn: keep the side chosen when a braking episode starts until it ends (nothing
+    within d_max, or not moving forward). False decides every tick, as the thesis did; in
+    simulation that decision flips back and forth while turning at a wall, because the arcs
+    the walker turns toward leave the camera's view and then count as blocked.
     """
 
     d_min_m: float = 0.5
@@ -34,6 +38,7 @@ class OpenLoopConfig:
     n_arcs: int = 32
     unseen_free_radius_m: float = 0.0
     min_speed_mps: float = 0.05
+    latch_turn: bool = True
 
     def __post_init__(self) -> None:
         if not 0 <= self.d_min_m < self.d_max_m:
@@ -68,19 +73,20 @@ class OpenLoop(Controller):
         if level == 0.0 or inp.v <= cfg.min_speed_mps:
             self.last_direction = 0
             return BrakeCommand(inp.t, off, off, "open-loop")
-        hfov = math.atan(self.cal.depth_intrinsics.width / 2 / self.cal.depth_intrinsics.fx)
-        turn = choose_turn(
-            pts,
-            ref,
-            math.radians(cfg.arc_half_deg),
-            cfg.n_arcs,
-            hfov,
-            far,
-            cfg.unseen_free_radius_m,
-        )
-        self.last_direction = turn.direction
+        if not (cfg.latch_turn and self.last_direction):
+            hfov = math.atan(self.cal.depth_intrinsics.width / 2 / self.cal.depth_intrinsics.fx)
+            turn = choose_turn(
+                pts,
+                ref,
+                math.radians(cfg.arc_half_deg),
+                cfg.n_arcs,
+                hfov,
+                far,
+                cfg.unseen_free_radius_m,
+            )
+            self.last_direction = turn.direction
         torque = off + (brake.torque_max_nm - off) * level
-        if turn.direction > 0:  # turn left: brake the left wheel
+        if self.last_direction > 0:  # turn left: brake the left wheel
             return BrakeCommand(inp.t, torque, off, "open-loop")
         return BrakeCommand(inp.t, off, torque, "open-loop")
 

@@ -187,16 +187,18 @@ def test_regimes_beyond_d_max_below_d_min_and_not_moving():
 
 
 def test_thesis_form_needs_no_inertia_or_filter():
-    """mass = inertia = 0 and no filter: the estimate is 5.11 on every tick, whatever the
-    previous ones were."""
-    cfg = ClosedLoopConfig(mass_kg=0.0, yaw_inertia=0.0, handle_filter_s=0.0)
+    """The default (mass = inertia = 0, no filter): the estimate is 5.11 on every tick,
+    whatever the previous ones were."""
+    cfg = ClosedLoopConfig()
+    assert (cfg.mass_kg, cfg.yaw_inertia, cfg.handle_filter_s) == (0.0, 0.0, 0.0)
     ctl = ClosedLoop(cfg, CAL)
     ctl.command(ControlInput(0.0, np.zeros((0, 2)), np.zeros(3), 0.3, 0.5, brake_nm=(OFF, OFF)))
     ctl.command(ControlInput(0.1, np.zeros((0, 2)), np.zeros(3), 1.0, 0.46, brake_nm=(1.0, 2.0)))
     fb = (1.0 / 0.1015, 2.0 / 0.1015)
     assert ctl.last_handle == pytest.approx(handle_forces(1.0, 0.46, *fb, 16.0, 7.0, ALPHA, 0.32))
-    # the default filters: the same second tick gives a different (smoothed) estimate
-    d = create("closed-loop", CAL)
+    # the settling form filters: the same second tick gives a different (smoothed) estimate
+    settling = ClosedLoopConfig(mass_kg=31.5, yaw_inertia=8.69, handle_filter_s=0.3)
+    d = create("closed-loop", CAL, settling)
     d.command(ControlInput(0.0, np.zeros((0, 2)), np.zeros(3), 0.3, 0.5, brake_nm=(OFF, OFF)))
     d.command(ControlInput(0.1, np.zeros((0, 2)), np.zeros(3), 1.0, 0.46, brake_nm=(1.0, 2.0)))
     assert d.last_handle != pytest.approx(ctl.last_handle)

@@ -79,3 +79,33 @@ def test_manual_never_brakes_and_registry_lists_names():
     assert (cmd.left_nm, cmd.right_nm) == (OFF, OFF)
     with pytest.raises(ValueError, match="d_min < d_max"):
         OpenLoopConfig(d_min_m=1.0, d_max_m=0.5)
+
+
+@pytest.mark.parametrize("name", ["open-loop", "closed-loop"])
+def test_turn_side_is_latched_for_a_braking_episode(name):
+    """The side chosen when braking starts is kept while the obstacle stays within d_max
+    (even when the free areas swap), and chosen afresh after the episode ends; with
+    latch_turn=False the side follows the free areas every tick (the thesis)."""
+    from dataclasses import replace
+
+    from control.base import CONTROLLERS
+
+    blocked_left = np.vstack([wall_ahead(0.875), [[0.41 + 0.6, 0.5], [0.41 + 0.5, 0.4]]])
+    blocked_right = blocked_left * np.array([1.0, -1.0])
+    clear = np.empty((0, 2))
+
+    def braked_sides(latch):
+        cfg = replace(CONTROLLERS.spec(name).config_type(), latch_turn=latch)
+        ctl = create(name, CAL, cfg)
+        sides = []
+        for k, pts in enumerate([blocked_left, blocked_right, blocked_right, clear, blocked_right]):
+            cmd = ctl.command(ControlInput(0.1 * k, pts, np.zeros(3), v=0.8, omega=0.0))
+            sides.append(
+                0
+                if max(cmd.left_nm, cmd.right_nm) <= OFF + 1e-9
+                else (1 if cmd.left_nm > cmd.right_nm else -1)
+            )
+        return sides
+
+    assert braked_sides(True) == [-1, -1, -1, 0, 1]
+    assert braked_sides(False) == [-1, 1, 1, 0, 1]
