@@ -38,7 +38,9 @@ class UserParams:
     distance_scale_error: relative error of their sense of distance walked;
     backoff_s / backoff_speed_mps / backoff_turn_rad_s: after a collision, how long and how
     fast they pull the walker back, swinging its front away from what they touched;
-    stuck_s: how long they push against something that does not give before stepping back.
+    stuck_s: how long they push against something that does not give before stepping back;
+    min_turn_speed_mps: they slow into a turn to no faster than they can steer it (80 % of
+    the yaw rate their largest handle-force difference holds), but not below this.
     """
 
     speed_mps: float = 0.75
@@ -56,6 +58,7 @@ class UserParams:
     backoff_speed_mps: float = 0.25
     backoff_turn_rad_s: float = 0.4
     stuck_s: float = 1.0
+    min_turn_speed_mps: float = 0.2
 
 
 @dataclass(frozen=True)
@@ -276,6 +279,14 @@ class RouteFollower:
         err = math.remainder(bearing - self.belief[2], 2.0 * math.pi)
 
         v_des = self.p.speed_mps * max(0.3, math.cos(err)) * min(1.0, remaining / 0.8 + 0.2)
+        # Slow into a turn: no faster than the turn they can steer (pure pursuit needs
+        # ω = 2 v sin(err) / lookahead; their largest handle-force difference holds
+        # ω_max against the walker's rotational damping).
+        w = self.walker
+        omega_max = self.p.max_steer_n * w.alpha * w.half_track_m / w.yaw_damping
+        turn = 2.0 * abs(math.sin(err)) / self.p.lookahead_m
+        if turn > 0.0:
+            v_des = min(v_des, max(0.8 * omega_max / turn, self.p.min_turn_speed_mps))
         v_ref = max(abs(state.v), 0.3)
         omega_des = 2.0 * v_ref * math.sin(err) / self.p.lookahead_m
         if self.finished:
@@ -284,7 +295,6 @@ class RouteFollower:
             self._backoff_left_s -= dt
             v_des, omega_des = -self.p.backoff_speed_mps, self._backoff_turn
 
-        w = self.walker
         if self.finished or self._backoff_left_s > 0.0:
             self._speed_error_integral = 0.0
         else:
