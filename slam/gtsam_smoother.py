@@ -8,11 +8,63 @@ after the last keyframe. Landmark observations become `BearingRangeFactor2D` fac
 their keyframe with a Huber-robust noise model (outliers lose their pull rather than
 being gated). Every update revises the past: `trajectory()` is the smoothed estimate,
 every odometry message placed relative to its (smoothed) keyframe.
+
+Scan matching (`scan_matching=True`, off by default). Laser scans (`LaserScan`, with
+the laser's mount `laser_offset` on the walker) and depth frames (`DepthFrame`: the
+obstacle band flattened to the floor, `mapping.depth_points`) become 2-D point sets in
+the walker frame (`slam.scan_matching`). A scan is kept when the walker has moved
+`scan_keyframe_distance_m` or turned `scan_keyframe_angle_rad` (odometry) since the
+last kept scan; a keyframe then starts at the scan's own time, so each kept scan sits
+exactly on its keyframe (one scan per keyframe, no odometry offset between them).
+Each kept scan is matched
+
+- sequentially against the previous `scan_submap_size` kept scans, placed in the frame
+  of the previous one by the current estimate (a local submap), starting from the
+  odometry and searching ± `scan_window_sigmas` odometry standard deviations (clipped to
+  `scan_window_xy_m`, `scan_window_theta_rad`) → `BetweenFactorPose2` previous → current
+  with the match's covariance (robust: `scan_robust`, `scan_robust_k`), in addition to
+  the odometry factors; accepted when its inlier fraction ≥ `scan_min_inlier_fraction`,
+  conflict fraction ≤ `scan_max_conflict_fraction` and ambiguity ≤
+  `scan_max_ambiguity` (`slam.scan_matching.MatchResult`);
+- for loop closures against older kept scans (at least `loop_min_separation` kept scans
+  back) within `loop_search_radius_m` plus the search window of the current estimate.
+  The `loop_max_candidates` nearest (one per stretch of neighbouring scans) are tried,
+  each against a submap of the candidate and its `loop_submap_half` neighbours either
+  side, searching ± `loop_window_sigmas` standard deviations of the *relative* pose
+  (from iSAM2's joint marginal of the two keyframes; clipped to `loop_window_xy_m`,
+  `loop_window_theta_rad`). A match that passes the `loop_*` thresholds and whose
+  disagreement with the estimate passes a chi-squared gate (`loop_gate_chi2` on the
+  relative covariance plus the match's; 16.27 = 99.9 % for 3 degrees of freedom)
+  becomes a `BetweenFactorPose2` with a robust noise model (`loop_robust`,
+  `loop_robust_k`); after loop closures iSAM2 runs `loop_extra_updates` more updates.
+
+Huber is the default robust kernel for both kinds: it is convex, so a correct loop
+closure whose residual is large at first (the drift it corrects is many of its own
+standard deviations) still pulls with a bounded force and closes the loop over the
+next updates, whereas a redescending kernel (Cauchy) would all but ignore it in an
+incremental solver; wrong matches are kept out mainly by the verification and the gate.
+
+Odometry covariance with scan matching. Between scan keyframes the trajectory is the
+odometry (relative poses at other times are interpolated along it), and how the
+smoother spreads a scan-matching correction over the intermediate keyframes follows the
+odometry factors' covariance. `odometry_cov`: "model" uses the odometry model's
+(slam.motion); "distance" a random walk in path length L and turn R since the keyframe,
+var(x) = var(y) = k₁L + k₂R, var(θ) = k₃L + k₄R (`odometry_walk`, defaults 0.0025 m²/m:
+σ 5 cm per metre, the thesis's encoder error; 0.001 m²/rad; 0.006 rad²/m; 0.01
+rad²/rad), which does not depend on the message rate or timing; "auto" (default):
+"distance" with scan matching, "model" without. With `odometry_adaptive` the
+smoother then fits the odometry's scale to the data (covariance matching): the
+odometry's error against each accepted sequential scan match, normalised per axis by
+that variance, averages to the variance multiplier (σ multipliers clipped to
+`odometry_adaptive_range`, reported as `odometry_sigma_scale`); from the
+`odometry_adaptive_min_matches`-th match on it applies to new odometry factors, and the
+factors added before are replaced once with the scaled ones.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import gtsam
@@ -20,12 +72,25 @@ import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from hardware.calibration import WalkerCalibration
-from hardware.messages import Message
+from hardware.messages import DepthFrame, LaserScan, Message
 from slam.base import Localizer, PoseEstimate, register
 from slam.geometry import compose
 from slam.measurement import LandmarkObservation, landmark_observation
 from slam.motion import MotionNoise, OdometryModel, apply_increment, increment_jacobians
+from slam.scan_matching import (
+    MatchResult,
+    Reference,
+    Scan,
+    ScanMatchConfig,
+    depth_points,
+    laser_points,
+    match,
+    place,
+    relative_guess,
+)
 from slam.trajectory import Trajectory
+
+ROBUST_KERNELS = ("huber", "cauchy", "none")
 
 
 @dataclass(frozen=True)
@@ -40,6 +105,15 @@ class GtsamConfig:
     odometry_sigma_floor: added to each between-keyframe odometry covariance (x, y, θ):
     wheel odometry has no lateral noise of its own (the axle cannot slide), and a
     rank-deficient covariance makes the system ill-conditioned.
+    factorization: iSAM2's, "QR" or "CHOLESKY".
+    odometry_cov, odometry_walk, odometry_adaptive*: see the module docstring.
+    Scan matching (module docstring): scan_matching switches it on; scan_match: the
+    matcher's settings (slam.scan_matching.ScanMatchConfig); laser_offset: the laser's
+    (x, y, yaw) on the walker (the CARMEN logs' front laser sits at the robot centre:
+    Intel's robot_frontlaser_offset is 0); scan_max_range_m / scan_min_range_m: laser
+    returns used as points (SICK LMS: reliable to ~20 m; the walker's own frame can be
+    cut with a minimum); scan_keyframe_*: when a scan is kept; scan_*: sequential
+    matching; loop_*: loop closures.
     """
 
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -55,6 +129,88 @@ class GtsamConfig:
     huber_k: float = 1.345
     relinearize_threshold: float = 0.01
     odometry_sigma_floor: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
+    # QR: a long odometry-only chain (Intel lab, 3000 keyframes, tens of metres of
+    # drift) makes iSAM2's Cholesky factorization fail as indeterminate; QR does not.
+    factorization: str = "QR"
+    odometry_cov: str = "auto"
+    odometry_walk: tuple[float, float, float, float] = (0.0025, 0.001, 0.006, 0.01)
+    # -- scan matching (see the module docstring) ------------------------------------
+    scan_matching: bool = False
+    scan_match: ScanMatchConfig = field(default_factory=ScanMatchConfig)
+    laser_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scan_max_range_m: float = 20.0
+    scan_min_range_m: float = 0.0
+    scan_keyframe_distance_m: float = 0.3
+    scan_keyframe_angle_rad: float = 0.2
+    scan_submap_size: int = 3
+    scan_window_sigmas: float = 3.0
+    scan_window_xy_m: tuple[float, float] = (0.1, 0.5)
+    scan_window_theta_rad: tuple[float, float] = (0.05, 0.35)
+    scan_min_inlier_fraction: float = 0.3
+    scan_max_conflict_fraction: float = 0.2
+    scan_max_ambiguity: float = 0.9
+    scan_robust: str = "huber"
+    scan_robust_k: float = 1.345
+    odometry_adaptive: bool = True
+    odometry_adaptive_min_matches: int = 10
+    odometry_adaptive_range: tuple[float, float] = (0.1, 100.0)
+    loop_closure: bool = True
+    loop_search_radius_m: float = 2.0
+    loop_min_separation: int = 10
+    loop_max_candidates: int = 3
+    loop_submap_half: int = 2
+    loop_window_sigmas: float = 3.0
+    loop_window_xy_m: tuple[float, float] = (0.3, 1.5)
+    loop_window_theta_rad: tuple[float, float] = (0.1, 0.5)
+    loop_min_inlier_fraction: float = 0.5
+    loop_max_conflict_fraction: float = 0.1
+    loop_max_ambiguity: float = 0.9
+    loop_gate_chi2: float = 16.27
+    loop_robust: str = "huber"
+    loop_robust_k: float = 1.345
+    loop_extra_updates: int = 2
+
+    def __post_init__(self) -> None:
+        if self.odometry_cov not in ("auto", "model", "distance"):
+            raise ValueError(
+                f"odometry_cov must be auto, model or distance, got {self.odometry_cov!r}"
+            )
+        if self.factorization not in ("QR", "CHOLESKY"):
+            raise ValueError(f"factorization must be QR or CHOLESKY, got {self.factorization!r}")
+        for name in ("scan_robust", "loop_robust"):
+            if getattr(self, name) not in ROBUST_KERNELS:
+                raise ValueError(f"{name} must be one of {ROBUST_KERNELS}")
+        if self.scan_submap_size < 1 or self.loop_min_separation < 1:
+            raise ValueError("scan_submap_size and loop_min_separation must be >= 1")
+
+
+@dataclass(eq=False)
+class _ScanKeyframe:
+    """A kept scan: its keyframe index, time and points (walker frame)."""
+
+    kf: int
+    t: float
+    scan: Scan
+
+
+def _robust(kind: str, k: float, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
+    if kind == "none":
+        return base
+    est = (
+        gtsam.noiseModel.mEstimator.Huber.Create(k)
+        if kind == "huber"
+        else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
+    )
+    return gtsam.noiseModel.Robust.Create(est, base)
+
+
+def _body_covariance(cov: np.ndarray, theta: float) -> np.ndarray:
+    """The covariance of a match (x, y in the reference frame, θ) in the Pose2 tangent
+    space (x, y in the matched pose's own frame, θ), as BetweenFactorPose2 expects."""
+    c, s = math.cos(theta), math.sin(theta)
+    a = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = a @ cov @ a.T
+    return 0.5 * (out + out.T)
 
 
 class GtsamSmoother(Localizer):
@@ -64,8 +220,12 @@ class GtsamSmoother(Localizer):
         self.config = config
         self.calibration = calibration
         self.odometry = OdometryModel(calibration, config.noise)
+        self._walk = config.odometry_cov == "distance" or (
+            config.odometry_cov == "auto" and config.scan_matching
+        )
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(config.relinearize_threshold)
+        params.setFactorization(config.factorization)
         self.isam = gtsam.ISAM2(params)
         self._graph = gtsam.NonlinearFactorGraph()
         self._values = gtsam.Values()
@@ -80,6 +240,27 @@ class GtsamSmoother(Localizer):
         self._cache: tuple[int, Trajectory] | None = None
         self.counts = {"keyframes": 0, "landmark_factors": 0, "without_id": 0, "updates": 0}
         self._t: float | None = None
+        # scan matching
+        self._scans: list[_ScanKeyframe] = []
+        self._scan_delta = np.zeros(3)  # odometry since the last kept scan, and its cov
+        self._scan_cov = np.zeros((3, 3))
+        self._scan_kf0 = 0  # the keyframe of the last kept scan
+        self._odo_scale = np.ones(3)  # adaptive σ multipliers of the odometry (x, y, θ)
+        self._odo_z: list[np.ndarray] = []  # normalised squared odometry errors
+        self._adapted = not (config.scan_matching and config.odometry_adaptive)
+        self._early_odometry: list[list] = []  # [keyframe, delta, model cov, factor index]
+        self._pending: list[tuple[int, list]] = []  # (position in self._graph, record)
+        if config.scan_matching:
+            self.counts.update(
+                scans_kept=0,
+                scan_factors=0,
+                scan_rejected=0,
+                loop_candidates=0,
+                loop_closures=0,
+                loop_rejected=0,
+                loop_gated=0,
+                scan_matching_s=0.0,
+            )
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
@@ -91,6 +272,8 @@ class GtsamSmoother(Localizer):
                 self._new_keyframe(msg.t)
         elif (obs := landmark_observation(msg, self.calibration)) is not None:
             self._observe(obs)
+        elif self.config.scan_matching and isinstance(msg, LaserScan | DepthFrame):
+            self._scan(msg)
         if self._kf < 0 and self.odometry.has_odometry:
             self._start(msg.t)
 
@@ -116,9 +299,22 @@ class GtsamSmoother(Localizer):
         self._records.append((t, self._kf, self._delta.copy()))
 
     def _integrate(self, ds: float, dth: float, q: np.ndarray) -> None:
+        c = self.config
+        if self._walk:
+            kxy, kxy_turn, kth, kturn = c.odometry_walk
+            vxy = kxy * abs(ds) + kxy_turn * abs(dth)
+            added = np.diag([vxy, vxy, kth * abs(ds) + kturn * abs(dth)])
         f, g = increment_jacobians(self._delta[2], ds, dth)
         self._delta = apply_increment(self._delta, ds, dth)
-        self._delta_cov = f @ self._delta_cov @ f.T + g @ q @ g.T
+        if not self._walk:
+            added = g @ q @ g.T
+        self._delta_cov = f @ self._delta_cov @ f.T + added
+        if c.scan_matching:
+            f, g = increment_jacobians(self._scan_delta[2], ds, dth)
+            self._scan_delta = apply_increment(self._scan_delta, ds, dth)
+            if not self._walk:
+                added = g @ q @ g.T
+            self._scan_cov = f @ self._scan_cov @ f.T + added
 
     def _keyframe_due(self, t: float) -> bool:
         c = self.config
@@ -128,17 +324,28 @@ class GtsamSmoother(Localizer):
             or t - self._kf_t[-1] >= c.keyframe_time_s
         )
 
+    def _odometry_cov(self, model_cov: np.ndarray, keyframes: int = 1) -> np.ndarray:
+        """An odometry factor's covariance: the motion model's plus the floor per
+        keyframe, scaled per axis by the adaptive σ multipliers."""
+        floor = keyframes * np.diag(np.square(self.config.odometry_sigma_floor))
+        s = self._odo_scale
+        return (model_cov + floor) * np.outer(s, s)
+
+    def _odometry_factor(self, a: int, delta: np.ndarray, model_cov: np.ndarray):
+        return gtsam.BetweenFactorPose2(
+            X(a),
+            X(a + 1),
+            gtsam.Pose2(*delta),
+            gtsam.noiseModel.Gaussian.Covariance(self._odometry_cov(model_cov)),
+        )
+
     def _new_keyframe(self, t: float) -> None:
         k = self._kf + 1
-        cov = self._delta_cov + np.diag(np.square(self.config.odometry_sigma_floor))
-        self._graph.add(
-            gtsam.BetweenFactorPose2(
-                X(self._kf),
-                X(k),
-                gtsam.Pose2(*self._delta),
-                gtsam.noiseModel.Gaussian.Covariance(cov),
-            )
-        )
+        if self.config.scan_matching and not self._adapted:
+            # kept until the odometry noise is adapted, then replaced (see _adapt_odometry)
+            self._early_odometry.append([self._kf, self._delta.copy(), self._delta_cov.copy()])
+            self._pending.append((self._graph.size(), self._early_odometry[-1]))
+        self._graph.add(self._odometry_factor(self._kf, self._delta, self._delta_cov))
         self._values.insert(X(k), gtsam.Pose2(*compose(self._kf_pose, self._delta)))
         self._kf = k
         self._kf_t.append(t)
@@ -180,12 +387,192 @@ class GtsamSmoother(Localizer):
             self.counts["landmark_factors"] += 1
         self._flush()
 
+    # -- scan matching ----------------------------------------------------------------
+    def _scan_points(self, msg: LaserScan | DepthFrame) -> Scan:
+        c = self.config
+        voxel = c.scan_match.voxel_m
+        if isinstance(msg, LaserScan):
+            return laser_points(msg, c.laser_offset, c.scan_max_range_m, c.scan_min_range_m, voxel)
+        return depth_points(msg, self.calibration, voxel_m=voxel, min_range_m=c.scan_min_range_m)
+
+    def _scan(self, msg: LaserScan | DepthFrame) -> None:
+        c = self.config
+        if self._kf < 0:
+            return
+        if self._scans and not (
+            math.hypot(self._scan_delta[0], self._scan_delta[1]) >= c.scan_keyframe_distance_m
+            or abs(self._scan_delta[2]) >= c.scan_keyframe_angle_rad
+        ):
+            return
+        t0 = time.perf_counter()
+        pts = self._scan_points(msg)
+        if len(pts) < c.scan_match.min_points:
+            self.counts["scan_matching_s"] += time.perf_counter() - t0
+            return
+        if np.any(self._delta != 0):
+            self._new_keyframe(msg.t)
+        prev = self._scans[-1] if self._scans else None
+        odo = (self._scan_delta, self._scan_cov, max(self._kf - self._scan_kf0, 1))
+        self._scans.append(_ScanKeyframe(self._kf, msg.t, pts))
+        self._scan_delta = np.zeros(3)
+        self._scan_cov = np.zeros((3, 3))
+        self._scan_kf0 = self._kf
+        self.counts["scans_kept"] += 1
+        if prev is not None and prev.kf != self._kf:
+            poses = self._poses()
+            self._sequential(poses, *odo)
+            if c.loop_closure and len(self._scans) > c.loop_min_separation:
+                self._loop_closures(self._poses())
+        self.counts["scan_matching_s"] += time.perf_counter() - t0
+
+    def _poses(self) -> np.ndarray:
+        """Current estimates of all keyframe poses (kf × 3)."""
+        self._flush()
+        poses = gtsam.utilities.extractPose2(self.isam.calculateEstimate())
+        return np.asarray(poses, dtype=float).reshape(-1, 3)
+
+    def _submap(self, poses: np.ndarray, indices: range, frame_kf: int) -> Reference:
+        scans = [self._scans[i] for i in indices]
+        placed = place(poses[[s.kf for s in scans]], [s.scan for s in scans], poses[frame_kf])
+        return Reference(placed, self.config.scan_match)
+
+    def _add_match(self, a: int, b: int, res: MatchResult, robust: str, k: float) -> None:
+        cov = _body_covariance(res.covariance, res.pose[2])
+        noise = _robust(robust, k, gtsam.noiseModel.Gaussian.Covariance(cov))
+        self._graph.add(gtsam.BetweenFactorPose2(X(a), X(b), gtsam.Pose2(*res.pose), noise))
+
+    def _sequential(
+        self, poses: np.ndarray, odo: np.ndarray, odo_cov: np.ndarray, keyframes: int
+    ) -> None:
+        c = self.config
+        n = len(self._scans)
+        prev, cur = self._scans[-2], self._scans[-1]
+        ref = self._submap(poses, range(max(0, n - 1 - c.scan_submap_size), n - 1), prev.kf)
+        model = odo_cov + keyframes * np.diag(np.square(c.odometry_sigma_floor))
+        sd = np.sqrt(np.maximum(np.diag(model), 0.0)) * self._odo_scale
+        wxy = float(np.clip(c.scan_window_sigmas * max(sd[0], sd[1]), *c.scan_window_xy_m))
+        wth = float(np.clip(c.scan_window_sigmas * sd[2], *c.scan_window_theta_rad))
+        guess = relative_guess(poses[prev.kf], poses[cur.kf])
+        res = match(ref, cur.scan, guess, wxy, wth, c.scan_match)
+        if res.accepted(
+            c.scan_min_inlier_fraction, c.scan_max_conflict_fraction, c.scan_max_ambiguity
+        ):
+            self._add_match(prev.kf, cur.kf, res, c.scan_robust, c.scan_robust_k)
+            self.counts["scan_factors"] += 1
+            self._flush()
+            if c.odometry_adaptive and res.constraint >= c.scan_match.degenerate_constraint:
+                self._adapt_odometry(odo, model, res)
+        else:
+            self.counts["scan_rejected"] += 1
+
+    def _adapt_odometry(self, odo: np.ndarray, model: np.ndarray, res: MatchResult) -> None:
+        """Covariance matching: the odometry's error against an accepted scan match,
+        normalised per axis by the model's variance; once there are enough, their mean
+        sets the variance multipliers, so that the model's variance matches the
+        odometry's mean squared error (σ multipliers clipped to odometry_adaptive_range)."""
+        e = relative_guess(res.pose, odo)  # odometry in the frame of the match
+        self._odo_z.append(e * e / np.maximum(np.diag(model), 1e-12))
+        if len(self._odo_z) >= self.config.odometry_adaptive_min_matches:
+            z = np.mean(np.array(self._odo_z), axis=0)
+            self._odo_scale = np.clip(np.sqrt(z), *self.config.odometry_adaptive_range)
+            if not self._adapted:
+                # the odometry factors so far had the unadapted noise: swap them
+                self._adapted = True
+                self._flush()
+                graph = gtsam.NonlinearFactorGraph()
+                for a, delta, cov, _ in self._early_odometry:
+                    graph.add(self._odometry_factor(a, delta, cov))
+                remove = [rec[3] for rec in self._early_odometry]
+                self.isam.update(graph, gtsam.Values(), remove)
+                self._early_odometry = []
+                self._after_update()
+
+    def _relative_covariance(self, a: int, b: int, rel: np.ndarray) -> np.ndarray:
+        """Covariance of the relative pose a⁻¹·b (tangent space at it, as a
+        BetweenFactorPose2 measures it) from the joint marginal of keyframes a and b."""
+        joint = self.isam.jointMarginalCovariance([X(a), X(b)])
+        saa, sab, sbb = joint.at(X(a), X(a)), joint.at(X(a), X(b)), joint.at(X(b), X(b))
+        inv = gtsam.Pose2(*rel).inverse()
+        j = -inv.AdjointMap()  # ∂(a⁻¹b)/∂a; ∂(a⁻¹b)/∂b = I
+        cov = j @ saa @ j.T + j @ sab + sab.T @ j.T + sbb
+        return 0.5 * (cov + cov.T)
+
+    def _loop_closures(self, poses: np.ndarray) -> None:
+        c = self.config
+        n = len(self._scans)
+        cur = self._scans[-1]
+        here = poses[cur.kf]
+        # candidates: near enough for the absolute uncertainty (an upper bound of the
+        # relative one) ...
+        marginal = self.isam.marginalCovariance(X(cur.kf))
+        sxy = math.sqrt(max(float(np.linalg.eigvalsh(marginal[:2, :2])[-1]), 0.0))
+        reach = c.loop_search_radius_m + min(c.loop_window_sigmas * sxy, c.loop_window_xy_m[1])
+        old = np.arange(n - c.loop_min_separation)
+        kfs = np.array([self._scans[i].kf for i in old])
+        dist = np.hypot(*(poses[kfs, :2] - here[:2]).T)
+        near = old[dist <= reach]
+        order = near[np.argsort(dist[near])]
+        chosen: list[int] = []
+        for i in order.tolist():
+            if all(abs(i - j) > 2 * c.loop_submap_half for j in chosen):
+                chosen.append(i)
+                if len(chosen) >= c.loop_max_candidates:
+                    break
+        added = 0
+        for i in chosen:
+            cand = self._scans[i]
+            # ... each searched within ± loop_window_sigmas of its relative uncertainty
+            guess = relative_guess(poses[cand.kf], here)
+            rel_cov = self._relative_covariance(cand.kf, cur.kf, guess)
+            sxy = math.sqrt(max(float(np.linalg.eigvalsh(rel_cov[:2, :2])[-1]), 0.0))
+            sth = math.sqrt(max(float(rel_cov[2, 2]), 0.0))
+            wxy = float(np.clip(c.loop_window_sigmas * sxy, *c.loop_window_xy_m))
+            wth = float(np.clip(c.loop_window_sigmas * sth, *c.loop_window_theta_rad))
+            if dist[i] > c.loop_search_radius_m + wxy:
+                continue
+            lo, hi = (
+                max(0, i - c.loop_submap_half),
+                min(n - c.loop_min_separation, i + c.loop_submap_half + 1),
+            )
+            ref = self._submap(poses, range(lo, hi), cand.kf)
+            res = match(ref, cur.scan, guess, wxy, wth, c.scan_match)
+            self.counts["loop_candidates"] += 1
+            ok = res.accepted(
+                c.loop_min_inlier_fraction, c.loop_max_conflict_fraction, c.loop_max_ambiguity
+            )
+            if ok and c.loop_gate_chi2 > 0:
+                # consistent with the estimate and its uncertainty (chi-squared gate)
+                d = relative_guess(guess, res.pose)
+                s_ = rel_cov + _body_covariance(res.covariance, res.pose[2])
+                ok = float(d @ np.linalg.solve(s_, d)) <= c.loop_gate_chi2
+                if not ok:
+                    self.counts["loop_gated"] += 1
+            if ok:
+                self._add_match(cand.kf, cur.kf, res, c.loop_robust, c.loop_robust_k)
+                self.counts["loop_closures"] += 1
+                added += 1
+            else:
+                self.counts["loop_rejected"] += 1
+        if added:
+            self._flush()
+            for _ in range(c.loop_extra_updates):
+                self.isam.update()
+            self._after_update()
+
     def _flush(self) -> None:
         if self._graph.size() == 0 and self._values.size() == 0:
             return
-        self.isam.update(self._graph, self._values)
+        result = self.isam.update(self._graph, self._values)
+        if self._pending:
+            indices = result.getNewFactorsIndices()
+            for pos, record in self._pending:
+                record.append(int(indices[pos]))
+            self._pending = []
         self._graph = gtsam.NonlinearFactorGraph()
         self._values = gtsam.Values()
+        self._after_update()
+
+    def _after_update(self) -> None:
         est = self.isam.calculateEstimatePose2(X(self._kf))
         self._kf_pose = np.array([est.x(), est.y(), est.theta()])
         self._marginal = None
@@ -232,7 +619,11 @@ class GtsamSmoother(Localizer):
 
     def diagnostics(self) -> dict:
         notes = dict(self.counts)
-        if self.counts["landmark_factors"] == 0:
+        if self.config.scan_matching:
+            notes["odometry_sigma_scale"] = [round(float(v), 3) for v in self._odo_scale]
+            if self.counts["scan_factors"] + self.counts["loop_closures"] == 0:
+                notes["note"] = "scan matching on, but no scan was matched: odometry only"
+        elif self.counts["landmark_factors"] == 0:
             notes["note"] = "no landmark observations with an ID: odometry only"
         return notes
 

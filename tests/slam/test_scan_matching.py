@@ -1,0 +1,297 @@
+"""2-D scan matching (slam.scan_matching) and scan-matching factors in the gtsam smoother.
+
+Synthetic scans are ray-cast in rooms made of wall segments; every random generator is
+seeded. The Intel-lab test reads ../shared/data/intel_lab and skips when it is absent.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from experiments.metrics import ate, relation_errors
+from hardware.calibration import WalkerCalibration
+from hardware.messages import LaserScan, VelocityOdometry
+from slam.base import create
+from slam.geometry import between, compose, wrap_angle
+from slam.gtsam_smoother import GtsamConfig
+from slam.scan_matching import (
+    Reference,
+    ScanMatchConfig,
+    depth_points,
+    icp,
+    laser_points,
+    match,
+    voxel_downsample,
+)
+from slam.trajectory import Trajectory
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+INTEL = DATA / "intel_lab" / "intel.gfs.log.gz"
+INTEL_RELATIONS = DATA / "intel_lab" / "intel.relations"
+
+# ---------------------------------------------------------------------------------------
+# synthetic worlds
+
+
+def _box(x0, y0, x1, y1):
+    c = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    return [(*c[i], *c[(i + 1) % 4]) for i in range(4)]
+
+
+# A 10 × 8 m room with a pillar, a cabinet and a wall stub: no symmetry to alias on.
+ROOM = np.array(
+    _box(0, 0, 10, 8)
+    + _box(3.0, 3.0, 3.6, 3.6)
+    + _box(7.0, 5.5, 8.5, 6.2)
+    + [(6.0, 0.0, 6.0, 2.0)]
+    + _box(1.0, 6.0, 1.4, 7.2)
+)
+# A different place: a long narrow hall with a few alcoves.
+HALL = np.array(
+    _box(0, 0, 14, 3)
+    + _box(4.0, 2.4, 4.3, 3.0)
+    + _box(9.0, 0.0, 9.6, 0.5)
+    + [(12.0, 3.0, 12.0, 2.2)]
+)
+
+
+def render_scan(
+    world: np.ndarray,
+    pose,
+    t: float = 0.0,
+    beams: int = 361,
+    fov: float = math.radians(270.0),
+    range_max: float = 30.0,
+    noise_m: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> LaserScan:
+    """A laser scan from the walker pose (x, y, θ): each beam's nearest wall hit."""
+    x, y, th = pose
+    a = -0.5 * fov + np.arange(beams) * fov / (beams - 1)
+    d = np.stack([np.cos(th + a), np.sin(th + a)], axis=1)  # (B, 2)
+    p, q = world[:, :2], world[:, 2:]
+    e = q - p  # (S, 2)
+    # o + t d = p + u e  →  solve for t, u per beam and segment
+    w = p[None] - np.array([x, y])[None, None]  # (1, S, 2)
+    den = d[:, None, 0] * -e[None, :, 1] - d[:, None, 1] * -e[None, :, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_hit = (w[..., 0] * -e[None, :, 1] - w[..., 1] * -e[None, :, 0]) / den
+        u = (d[:, None, 0] * w[..., 1] - d[:, None, 1] * w[..., 0]) / den
+    ok = np.isfinite(t_hit) & (t_hit > 1e-9) & (u >= 0) & (u <= 1)
+    r = np.where(ok, t_hit, np.inf).min(axis=1)
+    if noise_m > 0:
+        r = r + (rng or np.random.default_rng(0)).normal(0.0, noise_m, r.shape)
+    r = np.where(np.isfinite(r) & (r < range_max), r, range_max)
+    return LaserScan(t, float(a[0]), float(a[1] - a[0]), r.astype(np.float32), range_max)
+
+
+def _err(a, b) -> tuple[float, float]:
+    e = between(np.asarray(a, float), np.asarray(b, float))
+    return float(math.hypot(e[0], e[1])), float(abs(e[2]))
+
+
+CFG = ScanMatchConfig()
+
+# ---------------------------------------------------------------------------------------
+# the matcher
+
+
+def test_voxel_downsample_keeps_one_centroid_per_cell():
+    pts = np.array([[0.01, 0.01], [0.03, 0.04], [0.26, 0.0], [0.27, 0.02]])
+    out = voxel_downsample(pts, 0.05)
+    assert len(out) == 2
+    assert sorted(map(tuple, np.round(out, 3))) == [(0.02, 0.025), (0.265, 0.01)]
+
+
+@pytest.mark.parametrize("noise_m", [0.0, 0.01])
+def test_icp_recovers_a_known_rigid_transform(noise_m):
+    rng = np.random.default_rng(1)
+    a, b = np.array([2.0, 2.0, 0.3]), np.array([2.6, 2.3, 0.45])
+    ref = Reference(laser_points(render_scan(ROOM, a, noise_m=noise_m, rng=rng)), CFG)
+    query = laser_points(render_scan(ROOM, b, noise_m=noise_m, rng=rng), voxel_m=CFG.voxel_m)
+    true = between(a, b)
+    guess = compose(true, np.array([0.12, -0.08, math.radians(4.0)]))
+    res = icp(ref, query, guess, CFG)
+    trans, rot = _err(true, res.pose)
+    tol = 0.01 if noise_m == 0 else 0.03
+    assert res.converged
+    assert trans < tol and rot < math.radians(0.5)
+    assert res.inlier_fraction > 0.8
+    assert np.all(np.linalg.eigvalsh(res.covariance) > 0)
+
+
+def test_match_finds_a_far_start_with_partial_overlap_and_noise():
+    rng = np.random.default_rng(2)
+    a, b = np.array([2.0, 1.5, 0.2]), np.array([5.0, 4.0, 1.4])  # 3.9 m, 69° apart
+    fov = math.radians(180.0)
+    ref = Reference(laser_points(render_scan(ROOM, a, fov=fov, noise_m=0.01, rng=rng)), CFG)
+    q_scan = render_scan(ROOM, b, fov=fov, noise_m=0.01, rng=rng)
+    query = laser_points(q_scan, voxel_m=CFG.voxel_m)
+    true = between(a, b)
+    guess = compose(true, np.array([-0.8, 0.7, math.radians(-25.0)]))
+    # ICP alone from that far falls into a wrong minimum; the correlative search does not
+    assert _err(true, icp(ref, query, guess, CFG).pose)[0] > 0.5
+    res = match(ref, query, guess, window_xy=1.2, window_theta=0.55, config=CFG)
+    trans, rot = _err(true, res.pose)
+    assert trans < 0.02 and rot < math.radians(0.5)
+    assert res.accepted(0.5, max_conflict_fraction=0.1, max_ambiguity=0.9)
+
+
+def test_unrelated_scans_are_rejected():
+    rng = np.random.default_rng(3)
+    ref = Reference(laser_points(render_scan(ROOM, (4.0, 4.5, 0.0), noise_m=0.01, rng=rng)), CFG)
+    query = laser_points(render_scan(HALL, (6.0, 1.5, 0.4), noise_m=0.01, rng=rng), voxel_m=0.05)
+    res = match(ref, query, np.zeros(3), window_xy=1.0, window_theta=0.4, config=CFG)
+    assert not res.accepted(0.5, max_conflict_fraction=0.1, max_ambiguity=0.9)
+    # ... while the same thresholds accept the right place
+    good = laser_points(render_scan(ROOM, (4.3, 4.2, 0.2), noise_m=0.01, rng=rng), voxel_m=0.05)
+    ok = match(ref, good, np.array([0.1, -0.1, 0.1]), 1.0, 0.4, CFG)
+    assert ok.accepted(0.5, max_conflict_fraction=0.1, max_ambiguity=0.9)
+
+
+def test_a_corridor_is_degenerate_along_its_axis():
+    corridor = np.array([(0.0, 0.0, 40.0, 0.0), (0.0, 2.0, 40.0, 2.0)])
+    rng = np.random.default_rng(4)
+    a, b = (15.0, 1.0, 0.0), (15.5, 1.1, 0.05)
+    ref = Reference(
+        laser_points(render_scan(corridor, a, noise_m=0.01, rng=rng), max_range_m=10), CFG
+    )
+    query = laser_points(render_scan(corridor, b, noise_m=0.01, rng=rng), max_range_m=10)
+    res = icp(ref, query, between(np.array(a), np.array(b)), CFG)
+    assert res.constraint < CFG.degenerate_constraint
+    assert abs(res.weak_axis[0]) > 0.99  # along the corridor
+    assert math.sqrt(res.covariance[0, 0]) > 0.5  # position along it: not measured
+    assert math.sqrt(res.covariance[1, 1]) < 0.05  # across it: measured
+
+
+def test_depth_frames_flatten_to_points_that_match():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "mapping"))
+    from synthetic_depth import FLOOR, Box, depth_frame
+
+    cal = WalkerCalibration()
+    scene = [
+        FLOOR,
+        Box((2.6, -2.0, 0.0), (3.0, 2.0, 1.5)),  # a wall ahead
+        Box((1.6, 0.3, 0.0), (2.0, 0.7, 1.0)),  # a box in front of it
+        Box((1.2, -1.3, 0.0), (2.6, -1.0, 1.0)),  # a side wall
+    ]
+    a, b = (0.0, 0.0, 0.0), (0.15, -0.05, 0.06)
+    fa = depth_frame(cal.depth_intrinsics, cal.depth_mount, scene, a)
+    fb = depth_frame(cal.depth_intrinsics, cal.depth_mount, scene, b)
+    sa = depth_points(fa, cal, voxel_m=0.05)
+    # the wall's face at x = 2.6 (walker frame, pose a is the origin)
+    assert np.any(np.abs(sa.points[:, 0] - 2.6) < 0.05)
+    assert np.all(sa.points[:, 0] > 1.1)
+    res = match(Reference(sa, CFG), depth_points(fb, cal, voxel_m=0.05), np.zeros(3), 0.3, 0.15)
+    trans, rot = _err(between(np.array(a), np.array(b)), res.pose)
+    assert trans < 0.04 and rot < math.radians(1.0)
+
+
+# ---------------------------------------------------------------------------------------
+# scan-matching factors in the smoother
+
+
+def _loop_messages(laps: int = 2):
+    """Drive twice around the room (1.5 m from its walls) at 0.5 m/s; velocity odometry
+    at 10 Hz with a 4 % speed error and a 0.03 rad/s yaw-rate bias; a 270° laser scan
+    (1 cm noise) every 0.5 s. Returns messages and the true trajectory."""
+    rng = np.random.default_rng(5)
+    corners = np.array([(1.5, 1.5), (8.5, 1.5), (8.5, 4.2), (5.0, 4.2), (5.0, 6.5), (1.5, 6.5)])
+    path = np.vstack([corners] * laps + [corners[:1]])
+    dt, v, w_turn = 0.1, 0.5, 0.8
+    pose = np.array([1.5, 1.5, 0.0])
+    t = 0.0
+    msgs, truth = [], [(t, *pose)]
+    last_scan = -1.0
+
+    def emit(v_true, w_true):
+        nonlocal pose, t, last_scan
+        msgs.append(VelocityOdometry(t, 1.04 * v_true, w_true + 0.03))
+        if t - last_scan >= 0.5 - 1e-9:
+            msgs.append(render_scan(ROOM, pose, t=t, noise_m=0.01, rng=rng))
+            last_scan = t
+        h = pose[2] + 0.5 * w_true * dt
+        pose = np.array(
+            [
+                pose[0] + v_true * dt * math.cos(h),
+                pose[1] + v_true * dt * math.sin(h),
+                wrap_angle(pose[2] + w_true * dt),
+            ]
+        )
+        t = round(t + dt, 6)
+        truth.append((t, *pose))
+
+    for target in path[1:]:
+        d = target - pose[:2]
+        heading = math.atan2(d[1], d[0])
+        while abs(wrap_angle(heading - pose[2])) > 1e-6:
+            turn = wrap_angle(heading - pose[2])
+            emit(0.0, math.copysign(min(w_turn, abs(turn) / dt), turn))
+        while (dist := float(np.hypot(*(target - pose[:2])))) > 1e-6:
+            emit(min(v, dist / dt), 0.0)
+    msgs.append(VelocityOdometry(t, 0.0, 0.0))
+    tr = np.array(truth)
+    return msgs, Trajectory(tr[:, 0], tr[:, 1:])
+
+
+def _run(msgs, cfg: GtsamConfig, start):
+    loc = create("gtsam", WalkerCalibration(), cfg, initial_pose=start)
+    for m in msgs:
+        loc.process(m)
+    return loc
+
+
+def test_loop_closures_remove_most_of_the_drift_of_biased_odometry():
+    msgs, truth = _loop_messages()
+    start = tuple(truth.poses[0])
+    plain = _run(msgs, GtsamConfig(), start)
+    scans = _run(msgs, GtsamConfig(scan_matching=True), start)
+    d = scans.diagnostics()
+    assert d["scan_factors"] > 0.9 * d["scans_kept"] - 1
+    assert d["loop_closures"] >= 5
+    final_plain = _err(plain.trajectory().poses[-1], truth.poses[-1])[0]
+    final_scan = _err(scans.trajectory().poses[-1], truth.poses[-1])[0]
+    assert final_plain > 1.0  # the biased odometry drifts
+    assert final_scan < final_plain / 10
+    assert ate(scans.trajectory(), truth)["ate_rmse_unaligned_m"] < 0.1
+
+
+def test_scans_are_ignored_unless_scan_matching_is_on():
+    msgs, _ = _loop_messages(laps=1)
+    msgs = msgs[:200]
+    plain = _run(msgs, GtsamConfig(), (1.5, 1.5, 0.0))
+    assert "scans_kept" not in plain.diagnostics()
+    odo_only = _run(
+        [m for m in msgs if not isinstance(m, LaserScan)], GtsamConfig(), (1.5, 1.5, 0.0)
+    )
+    assert np.allclose(plain.trajectory().poses, odo_only.trajectory().poses)
+
+
+@pytest.mark.data
+@pytest.mark.skipif(not INTEL.exists(), reason=f"Intel lab log not found at {INTEL}")
+def test_intel_lab_subset_relations_clearly_beat_dead_reckoning():
+    from hardware.datasets import open_dataset
+
+    ds = open_dataset("carmen", INTEL, relations=INTEL_RELATIONS)
+    # the first 500 s (150 scans): the robot leaves its start room, goes round the
+    # corridors and comes back; dead reckoning is metres off by then
+    msgs = [m for m in ds.messages() if m.t <= 500.0]
+    start = ds.metadata["config"]["initial_pose"]
+    rel = np.array(ds.metadata["relations"]["rows"])
+    dr = create("dead-reckoning", ds.calibration, initial_pose=start)
+    for m in msgs:
+        dr.process(m)
+    sm = _run(msgs, GtsamConfig(scan_matching=True), start)
+    e_dr = relation_errors(dr.trajectory(), rel)
+    e_sm = relation_errors(sm.trajectory(), rel)
+    assert e_sm["relations_used"] > 400
+    # measured: 0.046 m and 0.83° against dead reckoning's 2.7 m and 27°
+    assert e_sm["relations_trans_mean_m"] < 0.07
+    assert e_sm["relations_trans_mean_m"] < 0.05 * e_dr["relations_trans_mean_m"]
+    assert e_sm["relations_rot_mean_deg"] < 0.1 * e_dr["relations_rot_mean_deg"]
+    assert sm.diagnostics()["loop_closures"] > 20
