@@ -175,6 +175,24 @@ def simulate(
 
 
 RobotOpt = Annotated[int | None, typer.Option(help="mrclam: robot number (1-5)")]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="LOCALIZER.FIELD=VALUE: a field of a localizer's config, nested fields by "
+        "path (e.g. gtsam.scan_matching=true, ekf-slam.noise.brake_aware=true); repeatable",
+    ),
+]
+
+
+def _localizer_overrides(sets: list[str] | None, names: list[str]) -> dict[str, dict]:
+    """--set options → {localizer: {field path: typed value}}, for the localizers run."""
+    from experiments.studies.settings import parse_sets
+    from slam.base import LOCALIZERS
+
+    return parse_sets(sets or [], {n: LOCALIZERS for n in names}, names)
+
+
 RelationsOpt = Annotated[
     Path | None, typer.Option(help="carmen: benchmark relations file (Kümmerle et al.)")
 ]
@@ -234,15 +252,21 @@ def replay(
             "and map, and compare them with the logged ones"
         ),
     ] = None,
+    set_: SetOpt = None,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
     from control.base import CONTROLLERS
     from experiments.run import replay_log
+    from experiments.studies.settings import build_config
     from hardware.log import read_log
     from mapping.grid import GridConfig, MapModel
     from mapping.mapper import MapperConfig
+    from slam.base import LOCALIZERS
 
+    LOCALIZERS.spec(localizer)  # an unknown name: one line, before any work
+    overrides = _localizer_overrides(set_, [localizer]).get(localizer, {})
+    localizer_config = build_config(LOCALIZERS, localizer, overrides.items())
     if controller is not None:
         CONTROLLERS.spec(controller)  # an unknown name: one line, before any work
     if map_model not in [m.value for m in MapModel]:
@@ -269,6 +293,7 @@ def replay(
             trial,
             out,
             localizer=localizer,
+            localizer_config=localizer_config,
             mapper_config=mapper_config,
             controller=controller,
             progress=lambda t: update(elapsed(t)),
@@ -374,6 +399,7 @@ def compare(
     ] = None,
     relations: RelationsOpt = None,
     time_offset: TimeOffsetOpt = None,
+    set_: SetOpt = None,
 ) -> None:
     """Run localizers on logs; write results.csv, results.db, report.md; print the table.
 
@@ -383,6 +409,7 @@ def compare(
     from hardware.log import read_log
 
     names = parse_localizers(localizers)
+    overrides = _localizer_overrides(set_, names)
     sources: list = []
     if format is not None:
         from hardware.datasets import open_dataset
@@ -416,7 +443,12 @@ def compare(
     ) as bar:
         task = bar.add_task("comparing", total=None)
         res = run_compare(
-            sources, names, seeds, out, progress=lambda what: bar.update(task, description=what)
+            sources,
+            names,
+            seeds,
+            out,
+            progress=lambda what: bar.update(task, description=what),
+            overrides=overrides,
         )
     short = {
         "ate_rmse_m": "ATE m",

@@ -8,7 +8,7 @@ import csv
 import json
 import math
 import sqlite3
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from experiments.run import ReplayResult, replay_log
+from experiments.studies.settings import build_config
 from hardware.datasets import Dataset
 from hardware.log import TrialLog, read_log
 from slam.base import LOCALIZERS
@@ -119,7 +120,10 @@ def compare(
     seeds: int,
     out_dir: str | Path,
     progress: Callable[[str], None] | None = None,
+    overrides: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> CompareResult:
+    """Every localizer on every source; `overrides` = {localizer: {field path: value}}
+    changes fields of a localizer's default config (experiments.studies.settings)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.db").unlink(missing_ok=True)  # this comparison's runs only, like the CSV
@@ -134,9 +138,9 @@ def compare(
         trial = source if isinstance(source, TrialLog | Dataset) else read_log(source)
         name = source_name(source)
         for loc in localizers:
-            spec = LOCALIZERS.spec(loc)
+            base = build_config(LOCALIZERS, loc, (overrides or {}).get(loc, {}).items())
             for seed in range(seeds) if is_stochastic(loc) else [None]:
-                cfg = spec.config_type() if seed is None else replace(spec.config_type(), seed=seed)
+                cfg = base if seed is None else replace(base, seed=seed)
                 run_dir = out / name / loc / ("run" if seed is None else f"seed{seed}")
                 if progress is not None:
                     progress(f"{name} · {loc}" + ("" if seed is None else f" · seed {seed}"))

@@ -61,8 +61,9 @@ def convert(value: str, typ: Any, where: str) -> Any:
 
 
 def split_key(key: str) -> tuple[str, str]:
-    """'open-loop.d_max_m' → ('open-loop', 'd_max_m')."""
-    name, dot, field = key.strip().rpartition(".")
+    """'open-loop.d_max_m' → ('open-loop', 'd_max_m'); a field of a nested config keeps
+    its path: 'gtsam.noise.brake_aware' → ('gtsam', 'noise.brake_aware')."""
+    name, dot, field = key.strip().partition(".")
     if not dot or not name or not field:
         raise ValueError(f"expected NAME.FIELD (e.g. open-loop.d_max_m), got '{key}'")
     return name, field
@@ -79,14 +80,27 @@ def parse_assignment(text: str) -> tuple[str, str, list[str]]:
 
 
 def field_type(registry: Registry, name: str, field: str) -> Any:
-    """The declared type of `field` in `name`'s config (UnknownNameError / ValueError)."""
-    types = _field_types(registry.spec(name).config_type)
-    if field not in types:
-        raise ValueError(
-            f"{registry.kind} '{name}' has no config field '{field}'; fields: "
-            + (", ".join(types) or "(none)")
-        )
-    return types[field]
+    """The declared type of `field` (a dotted path into nested configs) in `name`'s
+    config (UnknownNameError / ValueError)."""
+    typ: Any = registry.spec(name).config_type
+    path = field.split(".")
+    for depth, part in enumerate(path):
+        types = _field_types(typ) if dataclasses.is_dataclass(typ) else {}
+        if part not in types:
+            where = ".".join(path[:depth]) or "config"
+            raise ValueError(
+                f"{registry.kind} '{name}' has no field '{part}' in its {where}; fields: "
+                + (", ".join(types) or "(none)")
+            )
+        typ = types[part]
+    return typ
+
+
+def _replace_path(cfg: Any, path: list[str], value: Any) -> Any:
+    """`cfg` with the field at `path` (nested dataclasses) replaced by `value`."""
+    head, rest = path[0], path[1:]
+    new = _replace_path(getattr(cfg, head), rest, value) if rest else value
+    return dataclasses.replace(cfg, **{head: new})
 
 
 def typed_overrides(registry: Registry, name: str, overrides: Mapping[str, Any]) -> dict[str, Any]:
@@ -101,12 +115,12 @@ def build_config(registry: Registry, name: str, overrides: Iterable[tuple[str, A
     config's validation (ValueError)."""
     cfg = registry.spec(name).config_type()
     over = typed_overrides(registry, name, dict(overrides))
-    if not over:
-        return cfg
     try:
-        return dataclasses.replace(cfg, **over)
+        for field, value in over.items():
+            cfg = _replace_path(cfg, field.split("."), value)
     except (TypeError, ValueError) as e:
         raise ValueError(f"{name}: {e}") from None
+    return cfg
 
 
 def parse_sets(

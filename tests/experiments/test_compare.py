@@ -77,3 +77,37 @@ def test_compare_datasets_per_robot_with_mean_over_robots(tmp_path):
     # dataset options without --format are refused in one line
     res = CliRunner().invoke(app, ["compare", str(folder), "--robot", "1", "--out", str(out)])
     assert res.exit_code == 2 and "need --format" in res.output
+
+
+def test_set_changes_a_nested_localizer_field_in_compare_and_replay(two_logs, tmp_path):
+    """`--set ekf-slam.noise.brake_aware=true` reaches the localizer's config (recorded per
+    run); a field that does not exist is a one-line error naming the fields there are."""
+    from typer.testing import CliRunner
+
+    from experiments.cli import app
+
+    args = ["compare", str(two_logs[0]), "--localizers", "ekf-slam", "--out", str(tmp_path)]
+    res = CliRunner().invoke(app, [*args, "--set", "ekf-slam.noise.brake_aware=true"])
+    assert res.exit_code == 0, res.output
+    db = sqlite3.connect(tmp_path / "results.db")
+    config = json.loads(db.execute("SELECT config FROM runs").fetchone()[0])
+    assert config["localizer_config"]["noise"]["brake_aware"] is True
+    out = tmp_path / "replay"
+    res = CliRunner().invoke(
+        app,
+        [
+            "replay",
+            str(two_logs[0]),
+            "--localizer",
+            "ekf-slam",
+            "--out",
+            str(out),
+            "--set",
+            "ekf-slam.noise.wheel_m=0.01",
+        ],
+    )
+    assert res.exit_code == 0, res.output
+    replay_config = json.loads((out / "config.json").read_text())
+    assert replay_config["localizer_config"]["noise"]["wheel_m"] == 0.01
+    res = CliRunner().invoke(app, [*args, "--set", "ekf-slam.noise.bogus=1"])
+    assert res.exit_code == 2 and "no field 'bogus'" in res.output
