@@ -151,6 +151,7 @@ def compare(
                     localizer_config=cfg,
                     figures=False,
                     reference_map=False,
+                    drag_metrics=False,
                 )
                 row = _row(name, loc, seed, res)
                 rows.append(row)

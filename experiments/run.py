@@ -122,6 +122,7 @@ def replay_log(
     reference_map: bool = True,
     controller: str | None = None,
     drag_config: DragConfig | None = None,
+    drag_metrics: bool = True,
     progress: Callable[[float], None] | None = None,
 ) -> ReplayResult:
     """Run a recorded trial (a log path, an opened log or an opened dataset) through a
@@ -134,6 +135,10 @@ def replay_log(
     controller: recompute the brake commands with this controller (registry name) at each
     logged command, on the replay's pose and map, and compare them with the logged ones
     (`controller_replay` in the metrics); over-steer is then measured on them.
+    drag_metrics: measure the drag metrics (phantom area over time, obstacle drag,
+    over-steer) during the replay. Their time is left out of the real-time factor, but
+    they also slow the loop itself (allocations, caches): compare and the benchmarks
+    switch them off.
     """
     trial = log if isinstance(log, TrialLog | Dataset) else read_log(log)
     log_path = trial.path if isinstance(trial, TrialLog) else f"{trial.name}"
@@ -154,8 +159,12 @@ def replay_log(
     drag_cfg = drag_config or DragConfig()
     outlines = [p for _, p in world.footprint_polygons(*MAP_BAND_M)] if world is not None else []
     truth = drag.TruthTracker()
-    phantom = drag.PhantomSeries(pipeline, outlines, drag_cfg) if world is not None else None
-    frame_drag = drag.FrameDrag(pipeline, truth, drag_cfg)
+    phantom = (
+        drag.PhantomSeries(pipeline, outlines, drag_cfg)
+        if world is not None and drag_metrics
+        else None
+    )
+    frame_drag = drag.FrameDrag(pipeline, truth, drag_cfg) if drag_metrics else None
     recomputer = (
         drag.CommandRecomputer(controller, cal, drag.estimated_input(pipeline))
         if controller is not None
@@ -165,7 +174,7 @@ def replay_log(
     steer_name = controller or _registered_controller(recorded_controller)
     reference_commands = (
         drag.CommandRecomputer(steer_name, cal, drag.true_input(pipeline, truth))
-        if steer_name is not None and pipeline.reference is not None
+        if steer_name is not None and pipeline.reference is not None and drag_metrics
         else None
     )
     observers = [
@@ -290,7 +299,7 @@ def _drag_metrics(
     pipeline: Pipeline,
     gt,
     phantom: drag.PhantomSeries | None,
-    frame_drag: drag.FrameDrag,
+    frame_drag: drag.FrameDrag | None,
     recomputer: drag.CommandRecomputer | None,
     reference_commands: drag.CommandRecomputer | None,
     cfg: DragConfig,
@@ -306,7 +315,7 @@ def _drag_metrics(
         metrics["phantom_area_over_time"] = phantom.summary(rec.commands, off)
         files["phantom_csv"] = phantom.write_csv(out / "phantom_area.csv")
     frame_series: dict[str, np.ndarray] = {}
-    if gt is not None and frame_drag.frames.t:
+    if gt is not None and frame_drag is not None and frame_drag.frames.t:
         metrics["drag"], frame_series = frame_drag.summary(rec.commands, off, gt)
         if frame_series:
             files["drag_csv"] = drag.write_frames_csv(frame_series, out / "drag_frames.csv")
