@@ -26,7 +26,6 @@ and averaged paths, walls), `report.md`, `study.json`, trial logs under `runs/`.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -37,10 +36,9 @@ import numpy as np
 
 from control.base import CONTROLLERS
 from experiments.studies import figures, tables
-from experiments.studies.engine import run_tasks
+from experiments.studies.runner import StudyResult, run_and_store, write_json
 from experiments.studies.settings import build_config, convert, field_type, parse_assignment
-from experiments.studies.store import write_results
-from experiments.studies.trial import RunSpec, run_trial
+from experiments.studies.trial import RunSpec
 from hardware.registry import UnknownNameError
 from hardware.sim.dynamics import WalkerParams
 from hardware.sim.slip import surface_coefficient
@@ -346,13 +344,6 @@ def table_rows(table: Sequence[dict[str, Any]]) -> list[list[str]]:
     ]
 
 
-@dataclass
-class CornerResult:
-    rows: list[dict[str, Any]]
-    table: list[dict[str, Any]]
-    files: dict[str, Path]
-
-
 def run_corner_study(
     study: CornerStudy,
     out_dir: str | Path,
@@ -361,37 +352,37 @@ def run_corner_study(
     workers: int | None = None,
     address: str | None = None,
     progress: Callable[[int, int], None] | None = None,
-) -> CornerResult:
+) -> StudyResult:
     study.validate()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     specs = plan(study, out)
-    results = run_tasks(
-        run_trial, specs, engine=engine, workers=workers, address=address, progress=progress
+    results, rows, files = run_and_store(
+        specs,
+        out,
+        result_row,
+        COLUMNS,
+        engine=engine,
+        workers=workers,
+        address=address,
+        progress=progress,
     )
-    rows = [result_row(r) for r in results]
-    files = write_results(out, rows, COLUMNS, [(r["path"], r["estimate"]) for r in results])
     table = setting_table(rows)
     files["table"] = out / "table.md"
     files["table"].write_text(tables.markdown(TABLE_HEADERS, table_rows(table)) + "\n")
     files.update(_figures(study, out, rows, results))
-    files["study"] = out / "study.json"
-    files["study"].write_text(
-        json.dumps(
-            {
-                "command": "corner-study",
-                **asdict(study),
-                "engine": engine,
-                "runs_total": len(rows),
-                "pushers": [asdict(Pusher.sample(study.run_seed(j))) for j in range(study.runs)],
-            },
-            indent=2,
-            default=str,
-        )
-        + "\n"
+    files["study"] = write_json(
+        out / "study.json",
+        {
+            "command": "corner-study",
+            **asdict(study),
+            "engine": engine,
+            "runs_total": len(rows),
+            "pushers": [asdict(Pusher.sample(study.run_seed(j))) for j in range(study.runs)],
+        },
     )
     files["report"] = _report(study, out, table, files)
-    return CornerResult(rows, table, files)
+    return StudyResult(rows, table, files)
 
 
 def _figures(study: CornerStudy, out: Path, rows, results) -> dict[str, Path]:

@@ -20,7 +20,6 @@ study's configuration) and, unless disabled, each run's trial log under
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -28,10 +27,9 @@ from typing import Any
 
 from control.base import CONTROLLERS
 from experiments.studies import figures, tables
-from experiments.studies.engine import run_tasks
+from experiments.studies.runner import StudyResult, run_and_store, write_json
 from experiments.studies.settings import build_config
-from experiments.studies.store import write_results
-from experiments.studies.trial import RunSpec, run_trial
+from experiments.studies.trial import RunSpec
 from hardware.sim.slip import surface_coefficient
 from hardware.sim.user import UserProfile
 from hardware.sim.world import load_world
@@ -182,13 +180,6 @@ def result_row(res: dict[str, Any]) -> dict[str, Any]:
     return row
 
 
-@dataclass
-class StudyResult:
-    rows: list[dict[str, Any]]
-    table: list[dict[str, Any]]
-    files: dict[str, Path]
-
-
 def run_course_study(
     study: CourseStudy,
     out_dir: str | Path,
@@ -202,31 +193,29 @@ def run_course_study(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     specs = plan(study, out)
-    results = run_tasks(
-        run_trial, specs, engine=engine, workers=workers, address=address, progress=progress
+    results, rows, files = run_and_store(
+        specs,
+        out,
+        result_row,
+        COLUMNS,
+        engine=engine,
+        workers=workers,
+        address=address,
+        progress=progress,
     )
-    rows = [result_row(r) for r in results]
-    files = write_results(out, rows, COLUMNS, [(r["path"], r["estimate"]) for r in results])
     table = tables.collision_table(rows, study.baseline)
     files.update(_figures(study, out, rows, results))
     files["table"] = out / "table.md"
     files["table"].write_text(_table_md(study, table) + "\n")
-    files["study"] = out / "study.json"
-    files["study"].write_text(
-        json.dumps(
-            {
-                "command": "course-study",
-                **asdict(study),
-                "engine": engine,
-                "runs": len(rows),
-                "users": [
-                    asdict(UserProfile.sample(study.trial_seed(i))) for i in range(study.trials)
-                ],
-            },
-            indent=2,
-            default=str,
-        )
-        + "\n"
+    files["study"] = write_json(
+        out / "study.json",
+        {
+            "command": "course-study",
+            **asdict(study),
+            "engine": engine,
+            "runs": len(rows),
+            "users": [asdict(UserProfile.sample(study.trial_seed(i))) for i in range(study.trials)],
+        },
     )
     files["report"] = _report(study, out, rows, table, files)
     return StudyResult(rows, table, files)

@@ -78,7 +78,7 @@ def test_sweep_parsing_types_values_by_the_config_field():
     s = parse_sweep("open-loop.d_max_m=0.75, 1.5")
     assert s == Sweep("open-loop", "d_max_m", (0.75, 1.5))
     assert parse_sweep("open-loop.n_arcs=16,32").values == (16, 32)
-    with pytest.raises(ValueError, match="has no field .D."):
+    with pytest.raises(ValueError, match=r"has no field 'D' in its config"):
         parse_sweep("open-loop.D=1")
     with pytest.raises(ValueError, match=r"NAME\.FIELD"):
         parse_sweep("d_max_m=1")
