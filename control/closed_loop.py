@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from control.base import CONTROLLERS, ControlInput, Controller
-from control.perception import choose_turn, front_distance, to_walker_frame
+from control.perception import distance_ahead, to_walker_frame, turn_direction
 from hardware.calibration import WalkerCalibration
 from hardware.messages import BrakeCommand
 
@@ -268,26 +268,11 @@ class ClosedLoop(Controller):
         """Signed desired turn radius (+ = left): inf for no braking, |R| <= r_b for a pivot
         about the inner wheel (inner brake full), else R_d = ±(d + radius_offset_m)."""
         cfg = self.config
-        ref = self.cal.depth_mount.x
-        far = self.cal.depth_range_m[1]
-        d = front_distance(points_walker, ref, cfg.half_width_m, far)
+        d = distance_ahead(points_walker, self.cal, cfg.half_width_m)
         self.last_distance = d
         if d > cfg.d_max_m:
             return math.inf
-        intr = self.cal.depth_intrinsics
-        hfov = math.atan(intr.width / 2 / intr.fx)
-        turn = choose_turn(
-            points_walker,
-            ref,
-            math.radians(cfg.arc_half_deg),
-            cfg.n_arcs,
-            hfov,
-            far,
-            cfg.unseen_free_radius_m,
-        )
-        direction = (
-            self.last_direction if cfg.latch_turn and self.last_direction else turn.direction
-        )
+        direction = turn_direction(points_walker, self.cal, cfg, self.last_direction)
         if d <= cfg.d_min_m:
             return direction * cfg.r_b
         return direction * (d + cfg.radius_offset_m)

@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass
 
 from control.base import CONTROLLERS, ControlInput, Controller
-from control.perception import choose_turn, front_distance, to_walker_frame
+from control.perception import distance_ahead, to_walker_frame, turn_direction
 from hardware.calibration import WalkerCalibration
 from hardware.messages import BrakeCommand
 
@@ -65,26 +65,13 @@ class OpenLoop(Controller):
         cfg, brake = self.config, self.cal.brake
         off = brake.torque_off_nm
         pts = to_walker_frame(inp.occupied_xy, inp.pose)
-        ref = self.cal.depth_mount.x
-        far = self.cal.depth_range_m[1]
-        d = front_distance(pts, ref, cfg.half_width_m, far)
+        d = distance_ahead(pts, self.cal, cfg.half_width_m)
         self.last_distance = d
         level = open_loop_level(d, cfg.d_min_m, cfg.d_max_m)
         if level == 0.0 or inp.v <= cfg.min_speed_mps:
             self.last_direction = 0
             return BrakeCommand(inp.t, off, off, "open-loop")
-        if not (cfg.latch_turn and self.last_direction):
-            hfov = math.atan(self.cal.depth_intrinsics.width / 2 / self.cal.depth_intrinsics.fx)
-            turn = choose_turn(
-                pts,
-                ref,
-                math.radians(cfg.arc_half_deg),
-                cfg.n_arcs,
-                hfov,
-                far,
-                cfg.unseen_free_radius_m,
-            )
-            self.last_direction = turn.direction
+        self.last_direction = turn_direction(pts, self.cal, cfg, self.last_direction)
         torque = off + (brake.torque_max_nm - off) * level
         if self.last_direction > 0:  # turn left: brake the left wheel
             return BrakeCommand(inp.t, torque, off, "open-loop")

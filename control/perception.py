@@ -73,3 +73,29 @@ def choose_turn(
     half = n_arcs // 2
     area_right, area_left = float(area[:half].sum()), float(area[half:].sum())
     return TurnDecision(1 if area_left >= area_right else -1, area_left, area_right, radii)
+
+
+def distance_ahead(points_walker: np.ndarray, calibration, half_width: float) -> float:
+    """`front_distance` from the walker's depth camera, within its range."""
+    return front_distance(
+        points_walker, calibration.depth_mount.x, half_width, calibration.depth_range_m[1]
+    )
+
+
+def turn_direction(points_walker: np.ndarray, calibration, config, previous: int) -> int:
+    """The side to turn to (+1 left, −1 right) for a controller config with arc_half_deg,
+    n_arcs, unseen_free_radius_m and latch_turn: `previous` (the side of the braking
+    episode under way, 0 if none) when latched, else `choose_turn` from the depth camera
+    (its field of view and range)."""
+    if config.latch_turn and previous:
+        return previous
+    intr = calibration.depth_intrinsics
+    return choose_turn(
+        points_walker,
+        calibration.depth_mount.x,
+        math.radians(config.arc_half_deg),
+        config.n_arcs,
+        math.atan(intr.width / 2 / intr.fx),
+        calibration.depth_range_m[1],
+        config.unseen_free_radius_m,
+    ).direction
