@@ -40,13 +40,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from mapping.lattice import (
-    as_points,
-    bundle_rays,
-    cell_centres,
-    cells_of,
-    trace_rays_flat,
-)
+from mapping.kernels import floor_bounds, mark_cells, mark_end_rays, update_log_odds
+from mapping.lattice import as_points, cell_centres, cells_of
 from mapping.observation import ViewWedge, WorldObservation
 from slam.geometry import wrap_angle
 
@@ -193,10 +188,12 @@ class GridExtent(ABC):
     def integrate(self, obs: WorldObservation, centre_xy: np.ndarray | None = None) -> None:
         """Add one frame. `centre_xy` (default: the sensor) centres the window when rolling."""
         res = self.resolution
-        occ = _floor_cells(obs.obstacles, res)
-        ends = _floor_cells(obs.ray_ends, res)
-        sensor = np.floor(obs.sensor_xy / res)[None]
-        box = _Box.around([occ, ends, sensor, *self._extra_cells(obs)])
+        si, sj = (int(v) for v in np.floor(obs.sensor_xy / res).tolist())
+        box = _Box(si, sj, si, sj)
+        if len(obs.obstacles) or len(obs.ray_ends):
+            box = box.union(_Box(*floor_bounds(obs.obstacles, obs.ray_ends, res)))
+        for extra in self._extra_cells(obs):
+            box = box.union(extra)
         if not (self.shape[0] and self._box().contains(box)):  # most frames fit as is
             centre = obs.sensor_xy if centre_xy is None else np.asarray(centre_xy, dtype=float)
             self._ensure(np.array(box.lo), np.array(box.hi), cells_of(centre[None], res)[0])
@@ -205,7 +202,7 @@ class GridExtent(ABC):
         window = box.intersection(grid_box)
         if window is None:
             return
-        frame = _Frame(self, obs, box, window, occ, ends)
+        frame = _Frame(self, obs, box, window)
         rows, cols = window.slices(grid_box)
         self._update({k: v[rows, cols] for k, v in self._layers.items()}, frame)
 
@@ -214,8 +211,9 @@ class GridExtent(ABC):
         (oi, oj), (ny, nx) = self._offset.tolist(), self.shape
         return _Box(oi, oj, oi + nx - 1, oj + ny - 1)
 
-    def _extra_cells(self, obs: WorldObservation) -> list[np.ndarray]:
-        """Cells beyond the observation's points that the update touches (e.g. a wedge)."""
+    def _extra_cells(self, obs: WorldObservation) -> list[_Box]:
+        """Boxes of cells beyond the observation's points that the update touches (e.g. a
+        view wedge)."""
         return []
 
     @abstractmethod
@@ -262,15 +260,6 @@ class GridExtent(ABC):
         self._offset = np.asarray(new_lo, dtype=np.int64).copy()
 
 
-def _floor_cells(points: np.ndarray, resolution: float) -> np.ndarray:
-    """`cells_of` as float64 (exact integers; one int conversion fewer per frame), stored
-    column by column (Fortran order), which makes per-column reductions 50× cheaper."""
-    points = as_points(points)
-    out = np.empty(points.shape, order="F")
-    np.divide(points, resolution, out=out)
-    return np.floor(out, out=out)
-
-
 @dataclass(frozen=True)
 class _Box:
     """The lattice cells i0..i1 × j0..j1 (inclusive), as Python ints: the per-frame
@@ -281,12 +270,18 @@ class _Box:
     i1: int
     j1: int
 
-    @classmethod
-    def around(cls, parts: list[np.ndarray]) -> _Box:
-        """The box of the rows of N×2 cell arrays (integral floats or ints; not all empty)."""
-        cells = np.concatenate([p.T for p in parts], axis=1)  # (2, N): cheap reductions
-        (i0, j0), (i1, j1) = cells.min(axis=1).tolist(), cells.max(axis=1).tolist()
-        return cls(int(i0), int(j0), int(i1), int(j1))
+    def union(self, other: _Box) -> _Box:
+        return _Box(
+            min(self.i0, other.i0),
+            min(self.j0, other.j0),
+            max(self.i1, other.i1),
+            max(self.j1, other.j1),
+        )
+
+    @property
+    def as_kernel_box(self) -> tuple[int, int, int, int]:
+        """(i0, j0, width, height), as `mapping.kernels` takes a box."""
+        return self.i0, self.j0, self.width, self.height
 
     @property
     def lo(self) -> tuple[int, int]:
@@ -329,44 +324,26 @@ class _Frame:
     then cropped to the `window` that the grid holds (the whole box unless it rolled).
     """
 
-    def __init__(
-        self,
-        grid: GridExtent,
-        obs: WorldObservation,
-        box: _Box,
-        window: _Box,
-        occ: np.ndarray,
-        ends: np.ndarray,
-    ) -> None:
+    def __init__(self, grid: GridExtent, obs: WorldObservation, box: _Box, window: _Box) -> None:
         self.grid, self.obs, self.box, self.window = grid, obs, box, window
         self._crop = window.slices(box)
-        self._ends = self._box_mask(ends)
-        self.occupied = self._box_mask(occ).reshape(box.height, box.width)[self._crop]
-
-    def _box_mask(self, cells: np.ndarray) -> np.ndarray:
-        """Flat boolean box with the N×2 (float64 floor) cells set."""
-        flat = cells[:, 1] - float(self.box.j0)
-        flat *= self.box.width
-        flat += cells[:, 0]
-        flat -= float(self.box.i0)
-        out = np.zeros(self.box.width * self.box.height, dtype=bool)
-        out[flat.astype(np.intp)] = True
-        return out
+        res, kbox = grid.resolution, box.as_kernel_box
+        self._ends = np.zeros(box.width * box.height, dtype=bool)
+        mark_cells(obs.ray_ends, res, kbox, self._ends)
+        occupied = np.zeros(box.width * box.height, dtype=bool)
+        mark_cells(obs.obstacles, res, kbox, occupied)
+        self.occupied = occupied.reshape(box.height, box.width)[self._crop]
 
     def rays(self) -> np.ndarray:
-        """Cells the rays crossed or ended in (the frame's obstacle cells included)."""
-        res, box = self.grid.resolution, self.box
-        ids = np.flatnonzero(self._ends)  # the distinct end cells, ordered by (j, i)
-        j, i = np.divmod(ids, box.width)
-        targets = np.empty((len(ids), 2))
-        np.add(i, box.i0 + 0.5, out=targets[:, 0])  # cell_centres, in the same float ops
-        np.add(j, box.j0 + 0.5, out=targets[:, 1])
-        targets *= res
-        if self.grid.config.bundle_rays:
-            targets = targets.take(bundle_rays(self.obs.sensor_xy, targets, res), axis=0)
+        """Cells the rays crossed or ended in (the frame's obstacle cells included): rays
+        from the sensor to the centres of the distinct end cells, or with
+        `GridConfig.bundle_rays` to the farthest of each bearing bin (`lattice.bundle_rays`),
+        traced by `lattice.mark_rays`'s sampling."""
         crossed = self._ends.copy()
-        crossed[trace_rays_flat(self.obs.sensor_xy, targets, res, box.lo, box.width)] = True
-        return crossed.reshape(box.height, box.width)[self._crop]
+        sx, sy = self.obs.sensor_xy.tolist()
+        res, bundle = self.grid.resolution, self.grid.config.bundle_rays
+        mark_end_rays(self._ends, sx, sy, res, bundle, self.box.as_kernel_box, crossed)
+        return crossed.reshape(self.box.height, self.box.width)[self._crop]
 
     def wedge(self, view: ViewWedge) -> np.ndarray:
         """Cells of the window whose centres lie in the view wedge of the sensor."""
@@ -439,12 +416,9 @@ class OccupancyGrid(GridExtent):
 
     def _update(self, layers: dict[str, np.ndarray], frame: _Frame) -> None:
         p = self.config.log_odds
-        lo = layers["log_odds"]
-        occ = frame.occupied
-        free = frame.rays() & ~occ
-        # Most of the window is free: a dense select beats boolean indexing there.
-        lo[...] = np.where(free, np.maximum(lo + np.float32(p.l_free), np.float32(p.l_min)), lo)
-        lo[occ] = np.minimum(lo[occ] + np.float32(p.l_occ), np.float32(p.l_max))
+        f32 = np.float32
+        args = (f32(p.l_occ), f32(p.l_free), f32(p.l_min), f32(p.l_max))
+        update_log_odds(layers["log_odds"], frame.occupied, frame.rays(), *args)
 
 
 class ViewCountGrid(GridExtent):
@@ -471,7 +445,7 @@ class ViewCountGrid(GridExtent):
     def known(self) -> np.ndarray:
         return self.views > 0
 
-    def _extra_cells(self, obs: WorldObservation) -> list[np.ndarray]:
+    def _extra_cells(self, obs: WorldObservation) -> list[_Box]:
         if obs.view is None:
             return []
         # Bounding box of the wedge from its arcs, sampled finely (the arcs bulge past the
@@ -484,9 +458,9 @@ class ViewCountGrid(GridExtent):
             ends = np.concatenate([v.r_min * c, v.r_max * c])
             ends += obs.sensor_xy[k]
             cells = np.floor(ends / self.resolution)
-            lo.append(cells.min() - 1)
-            hi.append(cells.max() + 1)
-        return [np.array([lo, hi])]
+            lo.append(int(cells.min()) - 1)
+            hi.append(int(cells.max()) + 1)
+        return [_Box(lo[0], lo[1], hi[0], hi[1])]
 
     def _update(self, layers: dict[str, np.ndarray], frame: _Frame) -> None:
         occ = frame.occupied

@@ -2,14 +2,15 @@
 
 A lattice of square cells of side `resolution` is anchored at the world origin: cell
 (i, j) covers [i·res, (i+1)·res) × [j·res, (j+1)·res). Everything here is vectorised numpy
-on N×2 arrays of points or integer cells; there is no per-point or per-ray Python loop.
+on N×2 arrays of points or integer cells, with no per-point or per-ray Python loop; ray
+samples are marked by a compiled loop (`mapping.kernels`).
 """
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
+
+from mapping.kernels import mark_ray_samples
 
 # Above this many bbox cells per input cell, deduplicate by sorting instead of a bitmap.
 _BITMAP_DENSITY_LIMIT = 8
@@ -123,97 +124,51 @@ def _longest_per_bin(bins: np.ndarray, r: np.ndarray) -> np.ndarray:
 
 
 def trace_rays(origin: np.ndarray, ends: np.ndarray, resolution: float) -> np.ndarray:
-    """Cells (K×2 int64, with repeats) that the segments origin → ends pass through.
+    """Distinct cells (K×2 int64, ordered by (j, i)) that the segments origin → ends pass
+    through.
 
     Each segment is sampled at steps of at most half a cell from the origin (included)
-    up to its end point (excluded); see `_ray_samples`.
+    up to its end point (excluded); see `mark_rays`.
     """
-    return np.column_stack(trace_rays_ij(origin, ends, resolution))
+    o = np.asarray(origin, dtype=np.float64)
+    ends = as_points(ends, "ends")
+    if len(ends) == 0:
+        return np.empty((0, 2), dtype=np.int64)
+    cells = cells_of(np.vstack([o[None], ends]), resolution)
+    (i0, j0), (i1, j1) = cell_bounds(cells)
+    width, height = int(i1 - i0 + 1), int(j1 - j0 + 1)
+    marks = np.zeros(width * height, dtype=bool)
+    mark_rays(o, ends, resolution, (int(i0), int(j0)), width, marks)
+    j, i = np.divmod(np.flatnonzero(marks), width)
+    return np.column_stack([i + i0, j + j0])
 
 
-def trace_rays_ij(
-    origin: np.ndarray, ends: np.ndarray, resolution: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """`trace_rays` as two 1-D arrays (i, j), which is cheaper to index with."""
-    x, y = _ray_samples(origin, ends, resolution)
-    return np.floor(x).astype(np.int64).ravel(), np.floor(y).astype(np.int64).ravel()
-
-
-def trace_rays_flat(
-    origin: np.ndarray, ends: np.ndarray, resolution: float, lo: tuple[int, int], width: int
-) -> np.ndarray:
-    """`trace_rays` as flat indices (j − lo_j)·width + (i − lo_i) into a row-major box.
-
-    The box's lower-left cell is `lo` = (lo_i, lo_j); rows are `width` cells long. The
-    index arithmetic stays in float64 (exact on integers) and is converted once, which
-    halves the passes over the samples compared with integer (i, j).
-    """
-    x, y = _ray_samples(origin, ends, resolution)
-    np.floor(x, out=x)
-    np.floor(y, out=y)
-    y *= width
-    y += x
-    y -= float(lo[1]) * width + float(lo[0])
-    return y.astype(np.intp).ravel()
-
-
-@lru_cache(maxsize=8)
-def _fraction_table(rows: int) -> np.ndarray:
-    """(rows, rows) float64: row n−1 holds min(k, n−1)/n for k = 0..rows−1."""
-    n = np.arange(1.0, rows + 1.0)[:, None]
-    table = np.minimum(np.arange(float(rows)), n - 1.0) / n
-    table.setflags(write=False)
-    return table
-
-
-def _fractions(n_max: int) -> np.ndarray:
-    """(n_max, n_max) view of the sample fractions of rays of n = 1..n_max samples: row n−1
-    holds k/n for k < n and then repeats (n−1)/n, the ray's last sample.
-
-    Tables are cached by n_max rounded up to 32: ~200 kB for a depth frame's rays, which
-    stays in cache, unlike one large table. Longer rays (> 25 m at 5 cm) are uncached."""
-    if n_max > 512:
-        return _fraction_table.__wrapped__(n_max)
-    return _fraction_table(-(-n_max // 32) * 32)[:n_max, :n_max]
-
-
-def _ray_samples(
-    origin: np.ndarray, ends: np.ndarray, resolution: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Sample points (x, y), in cell units, of the segments origin → ends (same shape).
+def mark_rays(
+    origin: np.ndarray,
+    ends: np.ndarray,
+    resolution: float,
+    lo: tuple[int, int],
+    width: int,
+    marks: np.ndarray,
+) -> None:
+    """Set the cells the segments origin → ends pass through in `marks`, a flat row-major
+    bitmap of a box whose lower-left cell is `lo` = (lo_i, lo_j) and whose rows are
+    `width` cells long; the box must hold every cell the segments touch (IndexError).
 
     A segment L cells long gets n = max(⌈2L⌉, 1) samples at fractions k/n, k = 0..n−1,
     of the way from the origin: the origin included, the end excluded, steps of at most
-    half a cell. A sample's cell is the floor of its coordinates.
-
-    When the rays have similar lengths (a depth frame's bundled rays) the samples form an
-    (R, n_max) block in which a short ray repeats its last sample: broadcasting the
-    per-ray values is cheaper than gathering them per sample. Otherwise the samples
-    form one ragged 1-D array. Either way each sample is computed as k/n·d + o in the
-    same float64 operations, so the cells do not depend on the layout.
+    half a cell. A sample's cell is the floor of its coordinates (in cell units); the
+    samples are marked by one compiled loop (`mapping.kernels.mark_ray_samples`).
     """
     o = np.asarray(origin, dtype=np.float64)
     if o.shape != (2,):
         raise ValueError(f"origin must have shape (2,) as (x, y), got {o.shape}")
     ends = as_points(ends, "ends")
     if len(ends) == 0:
-        return np.empty(0), np.empty(0)
+        return
     dx = (ends[:, 0] - o[0]) / resolution
     dy = (ends[:, 1] - o[1]) / resolution
-    steps = np.maximum(np.ceil(2.0 * np.hypot(dx, dy)), 1.0)  # integral float64
-    n_max, total = int(steps.max()), int(steps.sum())
-    if len(steps) * n_max <= 2 * total:
-        frac = _fractions(n_max)[steps.astype(np.intp) - 1]  # not .take: it copies the view
-        dx, dy = dx[:, None], dy[:, None]
-    else:
-        counts = steps.astype(np.int64)
-        ray = np.repeat(np.arange(len(counts)), counts)
-        frac = np.arange(total, dtype=np.float64)
-        frac -= (np.cumsum(counts) - counts)[ray]
-        frac /= steps[ray]
-        dx, dy = dx[ray], dy[ray]
-    x = frac * dx
-    x += o[0] / resolution
-    frac *= dy
-    frac += o[1] / resolution
-    return x, frac
+    steps = np.maximum(np.ceil(2.0 * np.hypot(dx, dy)), 1.0).astype(np.int64)
+    height = len(marks) // width
+    box = (int(lo[0]), int(lo[1]), int(width), int(height))
+    mark_ray_samples(o[0] / resolution, o[1] / resolution, dx, dy, steps, box, marks)

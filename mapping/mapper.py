@@ -60,12 +60,42 @@ class _Keyframe:
     pose: np.ndarray
 
 
+_warmed_up = False
+
+
+def warm_up() -> None:
+    """Load (or compile) the mapper's compiled loops (`mapping.kernels`) now, once per
+    process, by mapping a small synthetic depth frame (writable and read-only, as frames
+    come from sensors and from logs) and laser scan with both map models: the first use
+    of a compiled loop costs ~0.5–1 s (a few seconds when nothing is cached yet), which
+    should not land in the middle of a replay or a control loop. Every mapper calls this
+    when it is created."""
+    global _warmed_up
+    if _warmed_up:
+        return
+    _warmed_up = True
+    cal = WalkerCalibration()
+    k = cal.depth_intrinsics
+    depth = np.full((k.height, k.width), 1500, dtype=np.uint16)
+    depth[: k.height // 2] = 0
+    read_only = depth.copy()
+    read_only.setflags(write=False)
+    scan = LaserScan(0.0, -0.5, 0.1, np.full(11, 2.0), 10.0)
+    for model in ("log-odds", "view-count"):
+        mapper = OccupancyMapper(cal, MapperConfig(grid=GridConfig(model=model)))
+        for d in (depth, read_only):
+            mapper.integrate_depth(DepthFrame(0.0, d, k), np.zeros(3), key=0)
+        mapper.integrate_scan(scan, np.zeros(3))
+        mapper.rebuild()
+
+
 class OccupancyMapper:
     """Integrates depth frames and laser scans into one floor-plane grid (see module doc)."""
 
     def __init__(
         self, calibration: WalkerCalibration | None = None, config: MapperConfig | None = None
     ) -> None:
+        warm_up()
         self.calibration = calibration or WalkerCalibration()
         self.config = config or MapperConfig()
         self._grid = make_grid(self.config.grid)

@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from mapping.kernels import place_points
 from mapping.lattice import as_points, quantise_points
 
 
@@ -113,21 +114,9 @@ class PlanarObservation:
 
 def _place(points: np.ndarray, pose: np.ndarray, c: np.float64, s: np.float64) -> np.ndarray:
     """`slam.geometry.transform_points(pose, points)` with cos/sin given, in the same float64
-    operations (so the same values), written column-contiguous (Fortran order): the grid
-    reads the points column by column."""
-    x = points[:, 0].astype(np.float64)
-    y = points[:, 1].astype(np.float64)
-    out = np.empty((len(points), 2), order="F")
-    wx, wy = out[:, 0], out[:, 1]
-    tmp = np.empty_like(x)
-    np.multiply(c, x, out=wx)  # x' = (px + c·x) − s·y
-    wx += pose[0]
-    np.multiply(s, y, out=tmp)
-    wx -= tmp
-    np.multiply(s, x, out=wy)  # y' = (py + s·x) + c·y
-    wy += pose[1]
-    np.multiply(c, y, out=tmp)
-    wy += tmp
+    operations (so the same values), by one compiled loop (`mapping.kernels.place_points`)."""
+    out = np.empty((len(points), 2))
+    place_points(points, float(pose[0]), float(pose[1]), float(c), float(s), out)
     return out
 
 

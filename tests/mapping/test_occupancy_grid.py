@@ -195,3 +195,26 @@ def test_bad_inputs_raise():
         GridConfig(model="histogram")
     with pytest.raises(ValueError):
         LogOddsConfig(l_occ=-1.0)
+
+
+def test_compiled_loops_refuse_to_write_outside_their_box():
+    # The compiled loops index raw bitmaps: a point or ray sample outside the box must
+    # raise, not write past the array.
+    from mapping.kernels import mark_cells, mark_ray_samples
+
+    marks = np.zeros(4 * 3, dtype=bool)  # box of 4 × 3 cells from cell (10, 20)
+    mark_cells(np.array([[0.525, 1.025], [0.675, 1.125]]), RES, (10, 20, 4, 3), marks)
+    assert marks.reshape(3, 4)[0, 0] and marks.reshape(3, 4)[2, 3] and marks.sum() == 2
+    for outside in ([[0.475, 1.025]], [[0.725, 1.025]], [[0.525, 1.175]]):
+        with pytest.raises(IndexError):
+            mark_cells(np.array(outside), RES, (10, 20, 4, 3), marks)
+    with pytest.raises(IndexError):  # a ray from cell (0, 0) out to x = 5 cells
+        mark_ray_samples(
+            0.5,
+            0.5,
+            np.array([4.5]),
+            np.array([0.0]),
+            np.array([9]),
+            (0, 0, 4, 1),
+            np.zeros(4, dtype=bool),
+        )
