@@ -25,7 +25,7 @@ from slam.measurement import (
     range_bearing,
     range_bearing_jacobians,
 )
-from slam.motion import MotionNoise, OdometryModel, apply_increment, increment_jacobians
+from slam.motion import MotionNoise, OdometryModel, propagate
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 
@@ -53,8 +53,14 @@ class EkfSlam(Localizer):
         self.config = config
         self.calibration = calibration
         self.odometry = OdometryModel(calibration, config.noise)
-        self.x = np.array(config.initial_pose, dtype=float)
-        self.P = np.zeros((3, 3))
+        self._x = np.array(config.initial_pose, dtype=float)
+        self._P = np.zeros((3, 3))
+        # Between updates, odometry moves only the pose and its 3×3 covariance (on floats,
+        # slam.motion.propagate); the pose–landmark cross-covariance rows are moved once,
+        # by the sum of the steps' (a, b), when the full state is next needed (_sync).
+        self._pose = tuple(float(v) for v in self._x)
+        self._cov3 = tuple(tuple(r) for r in self._P.tolist())
+        self._cross = [0.0, 0.0]
         self.index: dict[int, int] = {}  # landmark id → state offset
         self.counts = {"updates": 0, "new_landmarks": 0, "gated": 0, "without_id": 0}
         self.track = TrajectoryRecorder()
@@ -71,12 +77,26 @@ class EkfSlam(Localizer):
             self._record(msg.t)
 
     def _predict(self, ds: float, dth: float, q: np.ndarray) -> None:
-        f, g = increment_jacobians(self.x[2], ds, dth)
-        self.x[:3] = apply_increment(self.x[:3], ds, dth)
-        p = self.P
-        p[:3, :3] = f @ p[:3, :3] @ f.T + g @ q @ g.T
-        p[:3, 3:] = f @ p[:3, 3:]
-        p[3:, :3] = p[:3, 3:].T
+        self._pose, self._cov3, (a, b) = propagate(self._pose, self._cov3, ds, dth, q)
+        self._cross[0] += a
+        self._cross[1] += b
+
+    def _sync(self) -> None:
+        """Bring the full state up to date with the predictions since the last update."""
+        self._x[:3] = self._pose
+        p = self._P
+        p[:3, :3] = self._cov3
+        a, b = self._cross
+        if len(self._x) > 3 and (a or b):
+            p[0, 3:] += a * p[2, 3:]
+            p[1, 3:] += b * p[2, 3:]
+            p[3:, :2] = p[:2, 3:].T
+        self._cross = [0.0, 0.0]
+
+    def _unsync(self) -> None:
+        """Take the pose and its covariance back from the full state after an update."""
+        self._pose = tuple(self._x[:3].tolist())
+        self._cov3 = tuple(tuple(r) for r in self._P[:3, :3].tolist())
 
     def _noise(self, z: np.ndarray) -> np.ndarray:
         c = self.config
@@ -84,6 +104,7 @@ class EkfSlam(Localizer):
         return np.diag([sr * sr, c.bearing_sigma_rad**2])
 
     def _observe(self, obs: LandmarkObservation) -> None:
+        self._sync()
         for lid, z in zip(obs.ids, obs.z, strict=True):
             lid = int(lid)
             if lid < 0:
@@ -92,24 +113,25 @@ class EkfSlam(Localizer):
                 self._update(self.index[lid], z)
             else:
                 self._add_landmark(lid, z)
+        self._unsync()
 
     def _add_landmark(self, lid: int, z: np.ndarray) -> None:
-        pose = self.x[:3]
+        pose = self._x[:3]
         j_s, j_z = landmark_from_range_bearing_jacobians(pose, z)
-        n = len(self.x)
+        n = len(self._x)
         p = np.zeros((n + 2, n + 2))
-        p[:n, :n] = self.P
-        cross = j_s @ self.P[:3, :]  # 2 × n
+        p[:n, :n] = self._P
+        cross = j_s @ self._P[:3, :]  # 2 × n
         p[n:, :n] = cross
         p[:n, n:] = cross.T
-        p[n:, n:] = j_s @ self.P[:3, :3] @ j_s.T + j_z @ self._noise(z) @ j_z.T
-        self.x = np.concatenate([self.x, landmark_from_range_bearing(pose, z)])
-        self.P = p
+        p[n:, n:] = j_s @ self._P[:3, :3] @ j_s.T + j_z @ self._noise(z) @ j_z.T
+        self._x = np.concatenate([self._x, landmark_from_range_bearing(pose, z)])
+        self._P = p
         self.index[lid] = n
         self.counts["new_landmarks"] += 1
 
     def _update(self, j: int, z: np.ndarray) -> None:
-        x, p = self.x, self.P
+        x, p = self._x, self._P
         lm = x[j : j + 2]
         g_s, g_l = range_bearing_jacobians(x[:3], lm)
         # P Hᵀ without forming the sparse H (pose block and this landmark's block)
@@ -122,27 +144,33 @@ class EkfSlam(Localizer):
             self.counts["gated"] += 1
             return
         k = pht @ s_inv
-        self.x = x + k @ nu
-        self.x[2] = wrap_angle(self.x[2])
-        self.P = p - k @ s @ k.T
-        self.P = 0.5 * (self.P + self.P.T)
+        self._x = x + k @ nu
+        self._x[2] = wrap_angle(self._x[2])
+        self._P = p - k @ s @ k.T
+        self._P = 0.5 * (self._P + self._P.T)
         self.counts["updates"] += 1
-        self.track.amend(self.x[:3].copy())
+        self.track.amend(tuple(self._x[:3].tolist()))
 
     def _record(self, t: float) -> None:
-        self.track.record(t, self.x[:3].copy())
+        self.track.record(t, self._pose)
 
     # -- outputs ----------------------------------------------------------------------
     def estimate(self) -> PoseEstimate:
-        return PoseEstimate(self.track.last_t, self.x[:3].copy(), self.P[:3, :3].copy())
+        return PoseEstimate(self.track.last_t, np.array(self._pose), np.array(self._cov3))
 
     def trajectory(self) -> Trajectory:
         return self.track.trajectory()
 
+    def state(self) -> tuple[np.ndarray, np.ndarray]:
+        """(mean, covariance) of the whole state [x, y, θ, u_1, v_1, …] (copies)."""
+        self._sync()
+        return self._x.copy(), self._P.copy()
+
     def landmarks(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Landmark id → (mean (2,), covariance 2×2)."""
+        self._sync()
         return {
-            lid: (self.x[j : j + 2].copy(), self.P[j : j + 2, j : j + 2].copy())
+            lid: (self._x[j : j + 2].copy(), self._P[j : j + 2, j : j + 2].copy())
             for lid, j in self.index.items()
         }
 

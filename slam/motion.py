@@ -88,6 +88,52 @@ def increment_jacobians(theta: float, ds: float, dtheta: float) -> tuple[np.ndar
     return f, g
 
 
+Pose = tuple[float, float, float]
+Cov3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+
+
+def propagate(
+    pose: Pose, cov: Cov3, ds: float, dtheta: float, q: np.ndarray
+) -> tuple[Pose, Cov3, tuple[float, float]]:
+    """One pose moved along the exact arc (ds, dθ) with its covariance, P' = F P Fᵀ + G Q Gᵀ,
+    in closed form on floats (this runs for every odometry message; ~10× cheaper than the
+    3×3 numpy products): F = [[1, 0, a], [0, 1, b], [0, 0, 1]] and G = ∂pose'/∂(ds, dθ) as
+    `increment_jacobians`; Q the increment's 2×2 covariance. Returns (pose', P', (a, b)):
+    a filter with more state (landmarks) moves its pose–landmark cross-covariance rows by
+    F, i.e. row x += a·row θ and row y += b·row θ, and the (a, b) of successive steps add up.
+    θ' is wrapped to [−π, π]."""
+    x, y, th = pose
+    dx, dy = arc_increment(ds, dtheta, th)
+    (p00, p01, p02), (_, p11, p12), (_, _, p22) = cov
+    a, b = -dy, dx
+    n00 = p00 + 2 * a * p02 + a * a * p22
+    n01 = p01 + a * p12 + b * p02 + a * b * p22
+    n02 = p02 + a * p22
+    n11 = p11 + 2 * b * p12 + b * b * p22
+    n12 = p12 + b * p22
+    # G for the exact arc, written out (see increment_jacobians)
+    half = 0.5 * dtheta
+    s = math.sin(half) / half if abs(half) > 1e-4 else 1.0 - half * half / 6.0
+    sp = (half * math.cos(half) - math.sin(half)) / half**2 if abs(half) > 1e-4 else -half / 3.0
+    chord, dchord = ds * s, 0.5 * ds * sp
+    h = th + half
+    c, sn = math.cos(h), math.sin(h)
+    g = (
+        (s * c, dchord * c - 0.5 * chord * sn),
+        (s * sn, dchord * sn + 0.5 * chord * c),
+        (0.0, 1.0),
+    )
+    q00, q01, q11 = float(q[0, 0]), float(q[0, 1]), float(q[1, 1])
+    gq = [(r[0] * q00 + r[1] * q01, r[0] * q01 + r[1] * q11) for r in g]
+    add = [[gq[i][0] * g[j][0] + gq[i][1] * g[j][1] for j in range(3)] for i in range(3)]
+    new_cov = (
+        (n00 + add[0][0], n01 + add[0][1], n02 + add[0][2]),
+        (n01 + add[1][0], n11 + add[1][1], n12 + add[1][2]),
+        (n02 + add[2][0], n12 + add[2][1], p22 + add[2][2]),
+    )
+    return (x + dx, y + dy, math.remainder(th + dtheta, 2.0 * math.pi)), new_cov, (a, b)
+
+
 @dataclass(frozen=True)
 class MotionNoise:
     """Odometry noise (see the module docstring); defaults suit the walker's encoders.

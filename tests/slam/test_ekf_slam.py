@@ -28,7 +28,7 @@ def test_beats_dead_reckoning_and_maps_tags(course_trial):
     err = [np.hypot(*(mean - [world.tag(i).x, world.tag(i).y])) for i, (mean, _) in lms.items()]
     assert np.median(err) < 0.25
     # the filter's covariance stays a covariance
-    assert np.all(np.linalg.eigvalsh(ekf.P) > -1e-9)
+    assert np.all(np.linalg.eigvalsh(ekf.state()[1]) > -1e-9)
 
 
 @pytest.mark.slow
@@ -67,3 +67,38 @@ def test_outlier_is_gated_and_unknown_ids_are_counted():
     mean, cov = ekf.landmarks()[7]
     assert mean == pytest.approx([2.0, 0.0], abs=1e-6)
     assert cov[0, 0] < 0.05**2  # many consistent sightings shrink it
+
+
+def test_deferred_cross_covariance_equals_the_full_prediction():
+    """Predictions move only the pose block; the pose–landmark rows catch up at the next
+    update. The result must equal predicting the full state at every step:
+    P ← F P Fᵀ + G Q Gᵀ with F, G the exact-arc Jacobians padded with the identity."""
+    from slam.motion import OdometryModel, apply_increment, increment_jacobians
+
+    cal = WalkerCalibration()
+    ekf = create("ekf-slam", cal, EkfSlamConfig())
+    for k in range(10):  # some pose uncertainty first, so the landmarks correlate with it
+        ekf.process(EncoderTicks(0.05 * k, 20 * k, 25 * k))
+    ekf.process(RangeBearing(0.45, 3, 2.0, 0.3))
+    ekf.process(RangeBearing(0.45, 4, 3.0, -0.5))
+    x, p = ekf.state()
+    odo = OdometryModel(cal, ekf.config.noise)
+    odo.increment(EncoderTicks(0.45, 180, 225))
+    rng = np.random.default_rng(5)
+    left, right = 180, 225
+    for k in range(10, 50):
+        left += int(rng.integers(0, 20))
+        right += int(rng.integers(0, 30))
+        msg = EncoderTicks(0.05 * k, left, right)
+        ekf.process(msg)
+        inc = odo.increment(msg)
+        f, g = increment_jacobians(x[2], inc.ds, inc.dtheta)
+        big_f = np.eye(len(x))
+        big_f[:3, :3] = f
+        x[:3] = apply_increment(x[:3], inc.ds, inc.dtheta)
+        p = big_f @ p @ big_f.T
+        p[:3, :3] += g @ inc.cov @ g.T
+    got_x, got_p = ekf.state()
+    np.testing.assert_allclose(got_x, x, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got_p, p, rtol=1e-9, atol=1e-12)
+    assert np.abs(p[:3, 3:]).max() > 1e-3  # the cross-covariance did move
