@@ -137,6 +137,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 import lz4.frame
+import msgspec
 import numpy as np
 import zstandard
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
@@ -303,7 +304,6 @@ _FIELDS: dict[type, list[tuple[str, str]]] = {  # (field, type name) in dataclas
 }
 _JSON_TYPE = {"float": "number", "int": "integer", "str": "string"}
 _TO_JSON: dict[str, Callable[[Any], Any]] = {"float": _jf, "int": int, "str": str}
-_FROM_JSON: dict[str, Callable[[Any], Any]] = {"float": float, "int": int, "str": str}
 _FLAT_SCHEMAS: dict[type, _Schema] = {
     cls: _json_schema(
         f"walker.{cls.__name__}",
@@ -633,9 +633,14 @@ def _exact(comp: Companions, schema: _Schema, ns: int) -> dict[str, Any] | None:
     return entry[1] if entry is not None and entry[0] == ns else None
 
 
-def _flat_decoder(cls: type) -> Callable[[Any, int, Companions], Message]:
-    convs = [(name, _FROM_JSON[type_name]) for name, type_name in _FIELDS[cls]]
-    return lambda obj, ns, comp: cls(**{name: conv(obj[name]) for name, conv in convs})
+def _flat_parser(cls: type) -> Callable[[bytes], Message]:
+    """JSON bytes → the flat message itself, typed by msgspec (fields required; a float
+    field also takes "NaN", "Infinity", "-Infinity" and integers; extra fields ignored)."""
+    return msgspec.json.Decoder(cls, strict=False).decode
+
+
+def _built(msg: Message, ns: int, comp: Companions) -> Message:
+    return msg
 
 
 def _dec_tags(obj: Any, ns: int, comp: Companions) -> TagDetections:
@@ -705,15 +710,15 @@ class _Reader:
 _READERS: dict[str, _Reader] = {
     r.schema.name: r
     for r in (
-        *(_Reader(_FLAT_SCHEMAS[c], json.loads, _flat_decoder(c), c) for c in _FLAT),
-        _Reader(TAG_DETECTIONS, json.loads, _dec_tags, TagDetections),
+        *(_Reader(_FLAT_SCHEMAS[c], _flat_parser(c), _built, c) for c in _FLAT),
+        _Reader(TAG_DETECTIONS, msgspec.json.decode, _dec_tags, TagDetections),
         _Reader(RAW_IMAGE, RawImage.FromString, _dec_depth, DepthFrame),
         _Reader(LASER_SCAN, PbLaserScan.FromString, _dec_scan, LaserScan),
         _Reader(POSE_IN_FRAME, PoseInFrame.FromString, _dec_pose, GroundTruthPose),
         _Reader(CAMERA_CALIBRATION, CameraCalibration.FromString),
-        _Reader(DEPTH_EXACT, json.loads),
-        _Reader(SCAN_EXACT, json.loads),
-        _Reader(POSE_EXACT, json.loads),
+        _Reader(DEPTH_EXACT, msgspec.json.decode),
+        _Reader(SCAN_EXACT, msgspec.json.decode),
+        _Reader(POSE_EXACT, msgspec.json.decode),
     )
 }
 
