@@ -6,9 +6,14 @@ arc that turns by dθ, and its 2×2 covariance); `apply_increment` moves poses a
 exact arc; `increment_jacobians` gives ∂pose'/∂pose and ∂pose'/∂(ds, dθ) for filters.
 
 Noise (`MotionNoise`): each wheel's distance is a random walk, σ² = k_wheel·|d| (+ k_turn
-for the turn's share). Velocity odometry errors are a random walk in time, so that the
-noise does not depend on the message rate: over dt, var(ds) = (k_v|v|)²·dt and
-var(dθ) = (k_ω|ω| + c)²·dt (k_v, k_ω in 1/√s, c in rad/√s). The opt-in
+for the turn's share). Velocity odometry errors are, by default (velocity_model "time"),
+a random walk in time, so that the noise does not depend on the message rate: over dt,
+var(ds) = (k_v|v|)²·dt and var(dθ) = (k_ω|ω| + c)²·dt (k_v, k_ω in 1/√s, c in rad/√s):
+right for velocities measured or commanded over real time (MRCLAM). For velocities that
+are a transport of integrated wheel odometry (CARMEN's ODOM poses, whose timestamps are
+too unreliable for a rate: a 1 ms piece may carry centimetres), velocity_model
+"distance" makes the errors a random walk in the path instead: var(ds) = k₁|ds| + k₂|dθ|,
+var(dθ) = k₃|ds| + k₄|dθ| (`distance_walk`), whatever the timing. The opt-in
 brake-aware variant inflates a wheel's variance with its logged brake torque τ:
 σ² += k_brake·(τ/τ_max)·|d|, and can remove an expected under-report (bias) of
 bias_per_full_brake·(τ/τ_max) of the distance (the slip the brake causes).
@@ -143,16 +148,29 @@ class MotionNoise:
     [rad/√s]: velocity odometry noise, σ over one second (module docstring). The defaults
     fit MRCLAM's commanded-velocity odometry (robot 1 of dataset 7, 1 s windows against
     the ground truth: σ(ds) = 0.011 m at a mean 0.056 m/s, σ(dθ) = 0.045 rad at a mean
-    0.066 rad/s); brake_aware: inflate (and optionally de-bias) a braked wheel.
+    0.066 rad/s). velocity_model: "time" or "distance" (module docstring), with
+    distance_walk = (k₁ [m²/m], k₂ [m²/rad], k₃ [rad²/m], k₄ [rad²/rad]), by default
+    σ(ds) = 5 cm per metre, σ(dθ) = 0.1 rad per radian turned and 0.077 rad per metre;
+    brake_aware: inflate (and optionally de-bias) a braked wheel.
     """
 
     wheel_m: float = 0.0025
     velocity_frac: float = 0.2
     omega_frac: float = 0.2
     omega_floor: float = 0.03
+    velocity_model: str = "time"
+    distance_walk: tuple[float, float, float, float] = (0.0025, 0.001, 0.006, 0.01)
     brake_aware: bool = False
     brake_wheel_m: float = 0.02
     bias_per_full_brake: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.velocity_model not in ("time", "distance"):
+            raise ValueError(
+                f"velocity_model must be 'time' or 'distance', got {self.velocity_model!r}"
+            )
+        if len(self.distance_walk) != 4 or min(self.distance_walk) < 0:
+            raise ValueError(f"distance_walk must be four values >= 0, got {self.distance_walk}")
 
 
 @dataclass(frozen=True)
@@ -222,7 +240,12 @@ class OdometryModel:
         if dt <= 0:
             return None
         n = self.noise
-        sv = n.velocity_frac * abs(prev.v)
-        sw = n.omega_frac * abs(prev.omega) + n.omega_floor
-        cov = np.diag([sv * sv * dt, sw * sw * dt])
-        return Increment(msg.t, dt, prev.v * dt, prev.omega * dt, cov)
+        ds, dth = prev.v * dt, prev.omega * dt
+        if n.velocity_model == "distance":
+            k1, k2, k3, k4 = n.distance_walk
+            cov = np.diag([k1 * abs(ds) + k2 * abs(dth), k3 * abs(ds) + k4 * abs(dth)])
+        else:
+            sv = n.velocity_frac * abs(prev.v)
+            sw = n.omega_frac * abs(prev.omega) + n.omega_floor
+            cov = np.diag([sv * sv * dt, sw * sw * dt])
+        return Increment(msg.t, dt, ds, dth, cov)
