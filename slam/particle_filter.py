@@ -21,6 +21,15 @@ measurement models weight the particles:
   filter's own estimates build, it drifts (frame-to-recent-map errors accumulate), so
   `use_scans` is off by default.
 
+Proposal (`proposal`). "motion" (default): particles are drawn from the odometry's noise
+at every increment, and frames and landmarks only reweight them. "scan": between scored
+frames particles move by the odometry alone while the odometry's covariance accumulates
+(in the frame of the last scored pose); a scored frame then draws each particle from
+odometry prior × scan likelihood (`slam.scan_proposal`, the improved proposal of
+GMapping on the one shared map) and weights it by that product's mass. A frame that
+cannot be scored (empty map, too few points in mapped cells) and a landmark update first
+draw the accumulated odometry noise, as "motion" would have.
+
 Weights live in log space, normalised with logsumexp; systematic resampling (as
 filterpy.monte_carlo.systematic_resample, vectorised and drawing from the filter's own
 generator) runs when N_eff = 1/Σw² falls below resample_threshold·N. The estimate is the
@@ -49,7 +58,8 @@ from slam.measurement import (
     landmark_observation,
     range_bearing,
 )
-from slam.motion import Increment, MotionNoise, OdometryModel, apply_increment
+from slam.motion import Increment, MotionNoise, OdometryModel, apply_increment, propagate
+from slam.scan_proposal import gaussian_fit, lattice, rotate_covariance, sample_gaussians
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 ODOMETRY_ONLY_NOTE = "no landmark observations and no map: odometry only"
@@ -98,6 +108,26 @@ class ParticleFilterConfig:
         consecutive frames repeat the same evidence; 0, 0: every frame.
     seed: every random draw comes from numpy.random.default_rng(seed).
     resample_threshold: resample when N_eff < resample_threshold·n_particles.
+    proposal: "motion" or "scan" (module docstring). For "scan": the coarse search
+        covers the particles' prior (3σ of the accumulated odometry covariance, plus
+        their spread) clipped to proposal_window_m (min, max half-width in x and y) and
+        proposal_window_rad, in steps of proposal_step_m and proposal_step_rad; the fine
+        lattice around its best pose has proposal_fine_steps steps per coarse step either
+        side; proposal_sigma_floor (x, y, θ) is added to every prior's σ (in quadrature).
+    maps: "shared" (default): frames are scored against the attached map, the one map
+        that the pipeline builds at this filter's estimates (Monte Carlo localization);
+        "per-particle": every particle carries its own occupancy grid (a
+        Rao-Blackwellized filter, grid FastSLAM / GMapping: slam.grid_rbpf), with
+        map_particles particles (n_particles is then not used), the "scan" proposal's
+        odometry handling, and a hill-climbing scan match per particle and frame
+        against its map: match_kernel_cells (search ± cells around each point),
+        match_step_m / match_step_rad (first steps, halved match_refinements times),
+        match_fit_step_m / match_fit_step_rad (the lattice the proposal's Gaussian is
+        fitted on); path_snapshot_s: how often the particles' poses are kept for their
+        paths (slam.particle_paths); weight_gain: a frame's log-weights are divided by
+        it (GMapping's "ogain", 3 there): the proposal may follow a sharp likelihood
+        while the weights, which decide which particles (and maps) survive, are
+        smoothed, so that resampling does not deplete the particles at every frame.
     """
 
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -123,8 +153,35 @@ class ParticleFilterConfig:
     scan_every_rad: float = 0.2
     seed: int = 0
     resample_threshold: float = 0.5
+    proposal: str = "motion"
+    proposal_window_m: tuple[float, float] = (0.15, 0.5)
+    proposal_window_rad: tuple[float, float] = (0.05, 0.3)
+    proposal_step_m: float = 0.05
+    proposal_step_rad: float = 0.02
+    proposal_fine_steps: int = 3
+    proposal_sigma_floor: tuple[float, float, float] = (0.01, 0.01, 0.005)
+    maps: str = "shared"
+    map_particles: int = 30
+    match_kernel_cells: int = 1
+    match_step_m: float = 0.05
+    match_step_rad: float = 0.05
+    match_refinements: int = 5
+    match_fit_step_m: float = 0.02
+    match_fit_step_rad: float = 0.01
+    path_snapshot_s: float = 0.0
+    weight_gain: float = 1.0
 
     def __post_init__(self) -> None:
+        if self.maps not in ("shared", "per-particle"):
+            raise ValueError(f"maps must be 'shared' or 'per-particle', got {self.maps!r}")
+        if self.map_particles < 1 or self.match_kernel_cells < 0 or self.match_refinements < 0:
+            raise ValueError("need map_particles >= 1, match_kernel_cells, refinements >= 0")
+        if self.weight_gain < 1.0:
+            raise ValueError(f"weight_gain must be >= 1, got {self.weight_gain}")
+        if self.proposal not in ("motion", "scan"):
+            raise ValueError(f"proposal must be 'motion' or 'scan', got {self.proposal!r}")
+        if min(self.proposal_step_m, self.proposal_step_rad) <= 0 or self.proposal_fine_steps < 1:
+            raise ValueError("proposal steps must be > 0 and proposal_fine_steps >= 1")
         if self.n_particles < 1:
             raise ValueError(f"n_particles must be >= 1, got {self.n_particles}")
         if len(self.initial_sigma) != 3 or min(self.initial_sigma) < 0:
@@ -201,6 +258,10 @@ class ParticleFilter(Localizer):
         self._field: _Field | None = None
         self._field_t = -math.inf  # message time the field was computed at
         self._moved = (math.inf, math.inf)  # odometry (|ds|, |dθ|) since the last scored frame
+        # proposal "scan": odometry since the particles were last drawn, in the frame of
+        # the pose they were drawn at, and its covariance (slam.motion.propagate)
+        self._delta: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._delta_cov = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
         self.counts: dict[str, Any] = {
             "landmark_updates": 0,
             "landmark_observations": 0,
@@ -237,6 +298,13 @@ class ParticleFilter(Localizer):
             self._record(msg.t)
 
     def _predict(self, inc: Increment) -> None:
+        if self.config.proposal == "scan":
+            self.particles = apply_increment(self.particles, inc.ds, inc.dtheta)
+            self._delta, self._delta_cov, _ = propagate(
+                self._delta, self._delta_cov, inc.ds, inc.dtheta, inc.cov
+            )
+            self._moved = (self._moved[0] + abs(inc.ds), self._moved[1] + abs(inc.dtheta))
+            return
         l00, l10, l11 = _cholesky_2x2(inc.cov)
         z = self.rng.standard_normal((2, len(self.particles)))
         ds = inc.ds + l00 * z[0]
@@ -252,6 +320,7 @@ class ParticleFilter(Localizer):
         self.counts["unknown_ids"] += len(known) - len(rows)
         if not rows:
             return
+        self._draw_odometry_noise()
         z = obs.z[rows]  # (M, 2)
         lm = self._landmarks[[known[k] for k in rows]]  # (M, 2)
         c = self.config
@@ -274,6 +343,7 @@ class ParticleFilter(Localizer):
             self._field_t = msg.t
         f = self._field
         if f is None:
+            self._draw_odometry_noise()
             return  # the map is still (nearly) empty
         points = self._frame_points(msg)
         # Only the points that land in mapped cells at the mean pose are scored, for every
@@ -281,11 +351,62 @@ class ParticleFilter(Localizer):
         # favour the particles that pull the frame's new parts onto what is already mapped.
         points = points[f.known[self._cells(self._mean()[None], points, f)[0]]]
         if len(points) < c.min_points:
+            self._draw_odometry_noise()
             return
-        log_p = f.log_p[self._cells(self.particles, points, f)].sum(axis=1)
-        self._update(c.beam_weight * log_p, msg.t)
+        if c.proposal == "scan":
+            self._scan_proposal(points, f, msg.t)
+        else:
+            self._update(self._score(self.particles, points, f), msg.t)
         self._moved = (0.0, 0.0)
         self.counts["scan_updates"] += 1
+
+    def _score(self, poses: np.ndarray, points: np.ndarray, f: _Field) -> np.ndarray:
+        """The frame's log-likelihood (times beam_weight) at each of the poses (M,)."""
+        return self.config.beam_weight * f.log_p[self._cells(poses, points, f)].sum(axis=1)
+
+    def _prior_cov(self) -> np.ndarray:
+        """(N, 3, 3) world-frame covariance of each particle's accumulated odometry, with
+        the floor: the odometry frame is the pose the particle was last drawn at."""
+        floor = np.diag(np.square(self.config.proposal_sigma_floor))
+        anchor_heading = self.particles[:, 2] - self._delta[2]
+        return rotate_covariance(np.array(self._delta_cov) + floor, anchor_heading)
+
+    def _draw_odometry_noise(self) -> None:
+        """Proposal "scan": draw the odometry noise accumulated since the last draw."""
+        if self.config.proposal != "scan" or not any(self._delta_cov[i][i] for i in range(3)):
+            return
+        cov = self._prior_cov() - np.diag(np.square(self.config.proposal_sigma_floor))
+        cov += 1e-18 * np.eye(3)  # positive definite for the Cholesky factor
+        self.particles = sample_gaussians(self.particles, cov, self.rng)
+        self._reset_odometry()
+
+    def _reset_odometry(self) -> None:
+        self._delta = (0.0, 0.0, 0.0)
+        self._delta_cov = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+
+    def _scan_proposal(self, points: np.ndarray, f: _Field, t: float) -> None:
+        """Draw every particle from odometry prior × frame likelihood (slam.scan_proposal)."""
+        c = self.config
+        prior = self._prior_cov()
+        mean = self._mean()
+        spread = np.sqrt(np.diagonal(prior, axis1=1, axis2=2).max(axis=0))
+        d = self.particles - mean
+        d[:, 2] = wrap_angle(d[:, 2])
+        spread = 3.0 * spread + np.abs(d).max(axis=0)
+        steps = np.array([c.proposal_step_m, c.proposal_step_m, c.proposal_step_rad])
+        lo = np.array([c.proposal_window_m[0]] * 2 + [c.proposal_window_rad[0]])
+        hi = np.array([c.proposal_window_m[1]] * 2 + [c.proposal_window_rad[1]])
+        half = np.ceil(np.clip(spread, lo, hi) / steps).astype(int)
+        coarse = lattice(mean, tuple(half), steps)
+        best = coarse[int(np.argmax(self._score(coarse, points, f)))]
+        k = c.proposal_fine_steps
+        fine = lattice(best, (k, k, k), steps / k)
+        mu, cov, log_eta = gaussian_fit(
+            fine, self._score(fine, points, f), self.particles, prior, steps / k
+        )
+        self.particles = sample_gaussians(mu, cov, self.rng)
+        self._reset_odometry()
+        self._update(log_eta, t)
 
     def _frame_points(self, msg: DepthFrame | LaserScan) -> np.ndarray:
         """Up to max_beams obstacle points (K×2, walker frame) of a frame, within range,
@@ -372,12 +493,17 @@ class ParticleFilter(Localizer):
         if n_eff < self.config.resample_threshold * n:
             idx = systematic_resample(w, self.rng)
             self.particles = self.particles[idx]
+            self._resampled(idx)
             lw = np.full(n, -math.log(n))
             w = np.full(n, 1.0 / n)
             self.counts["resamples"] += 1
         self.log_weights, self._weights = lw, w
         if self.track.last_t == t:
             self.track.amend(self._mean())
+
+    def _resampled(self, parents: np.ndarray) -> None:
+        """After resampling: the new particle k is a copy of the old particle parents[k]
+        (for what subclasses keep per particle)."""
 
     @property
     def weights(self) -> np.ndarray:
@@ -404,6 +530,8 @@ class ParticleFilter(Localizer):
         d = self.particles - mean
         d[:, 2] = wrap_angle(d[:, 2])
         cov = (d * self._weights[:, None]).T @ d
+        if self.config.proposal == "scan":  # the odometry noise not drawn yet
+            cov = cov + rotate_covariance(np.array(self._delta_cov), mean[2:3])[0]
         return PoseEstimate(t, mean, 0.5 * (cov + cov.T))
 
     def trajectory(self) -> Trajectory:
@@ -417,8 +545,18 @@ class ParticleFilter(Localizer):
         return notes
 
 
+def _particle_filter(config: ParticleFilterConfig, calibration: WalkerCalibration) -> Localizer:
+    """The shared-map filter, or with maps="per-particle" the Rao-Blackwellized one."""
+    if config.maps == "per-particle":
+        from slam.grid_rbpf import GridRbpf  # imports this module
+
+        return GridRbpf(config, calibration)
+    return ParticleFilter(config, calibration)
+
+
 register(
     "particle-filter",
     ParticleFilterConfig,
-    "Monte Carlo localization: known landmark map and/or a likelihood field of the shared map",
-)(ParticleFilter)
+    "Monte Carlo localization: known landmark map and/or a likelihood field of the shared "
+    "map; or (maps=per-particle) a Rao-Blackwellized filter with a map per particle",
+)(_particle_filter)

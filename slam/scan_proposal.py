@@ -1,0 +1,81 @@
+"""The particle filter's scan-informed proposal: odometry prior × scan likelihood, per particle.
+
+With the odometry alone as the proposal, particles spread with the motion noise and a
+sharp scan likelihood then keeps only the few that landed near its peak (N_eff → 1 at
+every scan, on a laser log). The improved proposal of Grisetti, Stachniss and Burgard
+(IEEE T-RO 2007, GMapping) draws each particle from p(x | x_prev, u, z, map) ∝
+p(z | x, map) · p(x | x_prev, u) instead, approximated by a Gaussian fitted around the
+likelihood's peak, and weights it by the normaliser η = ∫ p(z | x, map) p(x | x_prev, u) dx.
+Here all particles share one map, so the likelihood is evaluated once per frame on a pose
+lattice and every particle reuses it:
+
+1. coarse search: the frame's log-likelihood S(x) (`score`) on a lattice around the
+   particles' mean covering their prior (3σ, clipped to a window); its best pose x*;
+2. a fine lattice around x*, one coarse step either side;
+3. per particle i with prior N(x̄ᵢ, Σᵢ): τᵢ(g) = exp(S(g)) · N(g; x̄ᵢ, Σᵢ) on the fine
+   lattice → the mean μᵢ and covariance Cᵢ of τᵢ (plus the lattice's own quantisation,
+   step²/12 per axis), log ηᵢ = log Σ_g τᵢ(g) (+ a constant).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import logsumexp
+
+from slam.geometry import wrap_angle
+
+
+def lattice(centre: np.ndarray, half_steps: tuple[int, int, int], steps: np.ndarray) -> np.ndarray:
+    """(M, 3) poses centre + (i·step_x, j·step_y, k·step_θ) for |i|, |j|, |k| ≤ half_steps
+    (θ not wrapped, so that offsets from the centre stay small numbers)."""
+    axes = [np.arange(-h, h + 1) * s for h, s in zip(half_steps, steps, strict=True)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return grid + np.asarray(centre, dtype=float)
+
+
+def gaussian_fit(
+    poses: np.ndarray,
+    log_likelihood: np.ndarray,
+    prior_mean: np.ndarray,
+    prior_cov: np.ndarray,
+    steps: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per particle, the Gaussian fit of likelihood × prior on a lattice (module doc, 3).
+
+    poses (M, 3) the lattice, log_likelihood (M,) at each, prior_mean (N, 3), prior_cov
+    (N, 3, 3) (positive definite), steps (3,) the lattice steps. Returns (μ (N, 3), C
+    (N, 3, 3), log η (N,)); μ's heading is wrapped.
+    """
+    d = poses[None, :, :] - prior_mean[:, None, :]  # (N, M, 3)
+    d[..., 2] = wrap_angle(d[..., 2])
+    inv = np.linalg.inv(prior_cov)  # (N, 3, 3)
+    maha = np.einsum("nmi,nij,nmj->nm", d, inv, d)
+    _, logdet = np.linalg.slogdet(prior_cov)
+    log_tau = log_likelihood[None, :] - 0.5 * maha - 0.5 * logdet[:, None]
+    log_eta = logsumexp(log_tau, axis=1)
+    w = np.exp(log_tau - log_eta[:, None])  # (N, M), rows sum to 1
+    offsets = poses - poses[len(poses) // 2]  # relative to the lattice centre: no wrap
+    mean_off = w @ offsets  # (N, 3)
+    dev = offsets[None, :, :] - mean_off[:, None, :]
+    cov = np.einsum("nm,nmi,nmj->nij", w, dev, dev) + np.diag(np.square(steps) / 12.0)
+    mu = poses[len(poses) // 2] + mean_off
+    mu[:, 2] = wrap_angle(mu[:, 2])
+    return mu, cov, log_eta
+
+
+def sample_gaussians(mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One draw from each N(mean_i, cov_i): (N, 3); headings wrapped."""
+    chol = np.linalg.cholesky(cov)
+    out = mean + np.einsum("nij,nj->ni", chol, rng.standard_normal(mean.shape))
+    out[:, 2] = wrap_angle(out[:, 2])
+    return out
+
+
+def rotate_covariance(cov: np.ndarray, headings: np.ndarray) -> np.ndarray:
+    """(N, 3, 3): the body-frame covariance `cov` (3×3: x, y in the frame of a pose with
+    heading h, θ) in the world frame for each heading h."""
+    c, s = np.cos(headings), np.sin(headings)
+    r = np.zeros((len(headings), 3, 3))
+    r[:, 0, 0], r[:, 0, 1], r[:, 1, 0], r[:, 1, 1] = c, -s, s, c
+    r[:, 2, 2] = 1.0
+    return r @ cov @ np.transpose(r, (0, 2, 1))
