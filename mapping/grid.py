@@ -111,6 +111,13 @@ class GridExtent(ABC):
         self.config = config or GridConfig()
         self.reset()
 
+    def copy(self) -> GridExtent:
+        """An independent copy (same config, extent and layers)."""
+        out = type(self)(self.config)
+        out._offset = self._offset.copy()
+        out._layers = {name: layer.copy() for name, layer in self._layers.items()}
+        return out
+
     def reset(self) -> None:
         """Forget everything: an empty grid."""
         self._offset = np.zeros(2, dtype=np.int64)  # lattice (i, j) of array cell [0, 0]

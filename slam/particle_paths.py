@@ -32,8 +32,14 @@ class ParticlePaths:
         self.snapshots = 0
 
     def snapshot(self, t: float, poses: np.ndarray) -> None:
-        """Keep the poses (N×3) at time t if `every_s` has passed since the last one."""
-        if t - self._last_t < self.every_s or t <= self._last_t:
+        """Keep the poses (N×3) at time t if `every_s` has passed since the last one; at
+        the time of the last one, they replace it (an observation at the time of an
+        odometry message corrects the poses there)."""
+        if t == self._last_t:
+            last = max(i for i, e in enumerate(self._events) if isinstance(e, tuple))
+            del self._events[last]  # resamplings after it stay, before the new one
+            self.snapshots -= 1
+        elif t - self._last_t < self.every_s or t < self._last_t:
             return
         self._events.append((float(t), np.asarray(poses, dtype=np.float32).copy()))
         self._last_t = float(t)

@@ -1,0 +1,229 @@
+"""Compiled (numba) scan scoring against one particle's occupancy grid, and hill climbing.
+
+The Rao-Blackwellized particle filter (slam.grid_rbpf) scores every particle's frame
+against that particle's own map many times per frame, so the score is a compiled loop
+over the frame's points instead of a likelihood field (a distance transform per map and
+frame would cost more than the whole update). It is the endpoint model of GMapping
+(Grisetti et al. 2007): each point, placed at the pose, looks for the occupied cell
+nearest to it within ± `kernel` cells of its own cell; at distance d (point to cell
+centre) it scores log(z_hit·exp(−d²/2σ²) + z_rand), and log(z_rand) when there is none.
+A cell is occupied when its log-odds exceed `occupied_log_odds`.
+
+Grids are the log-odds arrays of mapping.grid.OccupancyGrid: [iy, ix], cell (i, j) of
+the world lattice at [j − j0, i − i0], cell side `resolution`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def point_log_likelihood(
+    log_odds: np.ndarray,
+    i0: int,
+    j0: int,
+    resolution: float,
+    occupied_log_odds: float,
+    x: float,
+    y: float,
+    kernel: int,
+    sigma: float,
+    z_hit: float,
+    z_rand: float,
+) -> tuple[float, bool]:
+    """(log-likelihood, matched) of one world point (module docstring)."""
+    ny, nx = log_odds.shape
+    ci = math.floor(x / resolution)
+    cj = math.floor(y / resolution)
+    best = math.inf
+    for j in range(cj - kernel, cj + kernel + 1):
+        r = j - j0
+        if r < 0 or r >= ny:
+            continue
+        for i in range(ci - kernel, ci + kernel + 1):
+            c = i - i0
+            if c < 0 or c >= nx or log_odds[r, c] <= occupied_log_odds:
+                continue
+            dx = (i + 0.5) * resolution - x
+            dy = (j + 0.5) * resolution - y
+            best = min(best, dx * dx + dy * dy)
+    if best == math.inf:
+        return math.log(z_rand), False
+    return math.log(z_hit * math.exp(-0.5 * best / (sigma * sigma)) + z_rand), True
+
+
+@njit(cache=True, nogil=True)
+def frame_log_likelihood(
+    log_odds: np.ndarray,
+    i0: int,
+    j0: int,
+    resolution: float,
+    occupied_log_odds: float,
+    points: np.ndarray,
+    pose: np.ndarray,
+    kernel: int,
+    sigma: float,
+    z_hit: float,
+    z_rand: float,
+) -> tuple[float, int]:
+    """(Σ log-likelihood, number of matched points) of walker-frame points (K, 2) at the
+    pose (x, y, θ)."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    total = 0.0
+    matched = 0
+    for k in range(points.shape[0]):
+        px, py = points[k, 0], points[k, 1]
+        ll, ok = point_log_likelihood(
+            log_odds,
+            i0,
+            j0,
+            resolution,
+            occupied_log_odds,
+            pose[0] + c * px - s * py,
+            pose[1] + s * px + c * py,
+            kernel,
+            sigma,
+            z_hit,
+            z_rand,
+        )
+        total += ll
+        matched += ok
+    return total, matched
+
+
+@njit(cache=True, nogil=True)
+def poses_log_likelihood(
+    log_odds: np.ndarray,
+    i0: int,
+    j0: int,
+    resolution: float,
+    occupied_log_odds: float,
+    points: np.ndarray,
+    poses: np.ndarray,
+    kernel: int,
+    sigma: float,
+    z_hit: float,
+    z_rand: float,
+) -> np.ndarray:
+    """`frame_log_likelihood` at each of the poses (M, 3) → (M,)."""
+    out = np.empty(poses.shape[0])
+    for m in range(poses.shape[0]):
+        out[m] = frame_log_likelihood(
+            log_odds,
+            i0,
+            j0,
+            resolution,
+            occupied_log_odds,
+            points,
+            poses[m],
+            kernel,
+            sigma,
+            z_hit,
+            z_rand,
+        )[0]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def hill_climb(
+    log_odds: np.ndarray,
+    i0: int,
+    j0: int,
+    resolution: float,
+    occupied_log_odds: float,
+    points: np.ndarray,
+    start: np.ndarray,
+    step_xy: float,
+    step_theta: float,
+    refinements: int,
+    kernel: int,
+    sigma: float,
+    z_hit: float,
+    z_rand: float,
+) -> tuple[np.ndarray, float, int]:
+    """The pose of locally best log-likelihood from `start` (GMapping's scan matcher):
+    move forward, back, left, right (in the pose's own frame) by step_xy or turn by
+    ±step_theta while that improves the score; when nothing does, halve both steps, at
+    most `refinements` times. Returns (pose, Σ log-likelihood, matched points)."""
+    pose = start.copy()
+    best, matched = frame_log_likelihood(
+        log_odds,
+        i0,
+        j0,
+        resolution,
+        occupied_log_odds,
+        points,
+        pose,
+        kernel,
+        sigma,
+        z_hit,
+        z_rand,
+    )
+    trial = np.empty(3)
+    halvings = 0
+    while halvings <= refinements:
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        improved = False
+        best_move = -1
+        best_score = best
+        best_matched = matched
+        for move in range(6):
+            trial[:] = pose
+            if move == 0:
+                trial[0] += c * step_xy
+                trial[1] += s * step_xy
+            elif move == 1:
+                trial[0] -= c * step_xy
+                trial[1] -= s * step_xy
+            elif move == 2:
+                trial[0] -= s * step_xy
+                trial[1] += c * step_xy
+            elif move == 3:
+                trial[0] += s * step_xy
+                trial[1] -= c * step_xy
+            elif move == 4:
+                trial[2] += step_theta
+            else:
+                trial[2] -= step_theta
+            score, m = frame_log_likelihood(
+                log_odds,
+                i0,
+                j0,
+                resolution,
+                occupied_log_odds,
+                points,
+                trial,
+                kernel,
+                sigma,
+                z_hit,
+                z_rand,
+            )
+            if score > best_score:
+                best_score, best_move, best_matched, improved = score, move, m, True
+        if improved:
+            if best_move == 0:
+                pose[0] += c * step_xy
+                pose[1] += s * step_xy
+            elif best_move == 1:
+                pose[0] -= c * step_xy
+                pose[1] -= s * step_xy
+            elif best_move == 2:
+                pose[0] -= s * step_xy
+                pose[1] += c * step_xy
+            elif best_move == 3:
+                pose[0] += s * step_xy
+                pose[1] -= c * step_xy
+            elif best_move == 4:
+                pose[2] += step_theta
+            else:
+                pose[2] -= step_theta
+            best, matched = best_score, best_matched
+        else:
+            step_xy *= 0.5
+            step_theta *= 0.5
+            halvings += 1
+    return pose, best, matched

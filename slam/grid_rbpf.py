@@ -1,0 +1,273 @@
+"""Rao-Blackwellized particle filter with an occupancy grid per particle (grid FastSLAM).
+
+`particle-filter` with `maps="per-particle"`: each of `map_particles` particles carries
+its own path and its own occupancy grid built along that path, as GMapping does
+(Grisetti, Stachniss and Burgard, IEEE T-RO 2007). Where one map shared by every particle
+cannot undo a drift that has been mapped (a loop comes back to walls mapped twice), the
+particles whose maps closed the loop correctly survive it.
+
+Per scored frame (a laser scan or depth frame, after `scan_every_m` / `scan_every_rad`
+of odometry), for each particle:
+
+1. its odometry prediction since the last frame (deterministic; the odometry's
+   covariance accumulates meanwhile, as in the "scan" proposal of slam.particle_filter)
+   starts a hill-climbing scan match against the particle's own map
+   (slam.grid_kernels: GMapping's endpoint model and optimizer);
+2. when at least `min_points` of the frame's points found an occupied cell there, the
+   improved proposal: likelihood × odometry prior on a 3×3×3 lattice around the match
+   (`match_fit_step_m`, `match_fit_step_rad`), a Gaussian fitted to it
+   (slam.scan_proposal.gaussian_fit), the new pose drawn from it, the weight multiplied by
+   the product's mass η; otherwise the pose is drawn from the odometry prior and weighted
+   by the frame's likelihood there;
+3. weights normalised, resampled when N_eff < resample_threshold·N (maps are shared by
+   the copies until one of them is written: copy on write);
+4. the frame integrated into each particle's map at its new pose.
+
+The estimate is the pose of the most probable particle; the trajectory its whole path,
+read back through resampling (slam.particle_paths), so the past changes whenever another
+particle becomes the most probable (`revises_past`; the pipeline then rebuilds the shared
+map along it). Between two frames a particle follows the odometry, and a frame moves it
+by a correction δ (the drawn pose minus the odometry's prediction): in the trajectory the
+correction is spread over the stretch of odometry that accumulated it, at each odometry
+message in proportion to the odometry variance accumulated by then (the mean of a random
+walk's path given its end point, a Brownian bridge; for x, y and θ separately), so that
+the path does not jump at frames while its poses at the frames stay those of the filter.
+Known landmarks, when given, weight the particles as in the shared-map filter. Particle
+maps use the attached mapper's configuration (grid, depth, scan).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from hardware.calibration import WalkerCalibration
+from hardware.messages import DepthFrame, LaserScan
+from mapping.depth_points import project_depth_frame
+from mapping.grid import GridExtent, OccupancyGrid, make_grid
+from mapping.mapper import MapperConfig
+from mapping.scan_points import scan_to_observation
+from slam.base import PoseEstimate
+from slam.geometry import wrap_angle
+from slam.grid_kernels import frame_log_likelihood, hill_climb, poses_log_likelihood
+from slam.particle_filter import ParticleFilter, ParticleFilterConfig
+from slam.particle_paths import ParticlePaths
+from slam.scan_proposal import gaussian_fit, lattice, sample_gaussians
+from slam.trajectory import Trajectory
+
+
+class GridRbpf(ParticleFilter):
+    """See the module docstring; built by `slam.base.create("particle-filter", ...)` when
+    the config has maps="per-particle"."""
+
+    revises_past = True
+
+    def __init__(self, config: ParticleFilterConfig, calibration: WalkerCalibration) -> None:
+        super().__init__(
+            replace(config, n_particles=config.map_particles, proposal="scan"), calibration
+        )
+        self._maps: list[GridExtent] = []
+        self._map_config = MapperConfig()
+        self.paths = ParticlePaths(config.path_snapshot_s)
+        # every frame's per-particle corrections, read back through resampling like the
+        # paths, and the odometry variance (x+y, θ) accumulated at each odometry message
+        # since the last frame, with each frame's total
+        self.corrections = ParticlePaths(0.0)
+        self._variance: list[tuple[float, float, float]] = []  # (t, var xy, var θ)
+        self._segment_totals: list[tuple[float, float]] = []  # at each frame
+        self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
+        self.counts.update(scan_matches=0, unmatched=0, map_copies=0)
+        self.attach_map(None)
+
+    # -- the particles' maps --------------------------------------------------------------
+    def attach_map(self, source) -> None:
+        """Particle maps are built with the configuration of `source` (an OccupancyMapper:
+        the pipeline's shared mapper) when it has one; they start empty."""
+        super().attach_map(source)
+        cfg = getattr(source, "config", None)
+        if isinstance(cfg, MapperConfig):
+            self._map_config = cfg
+        grid_cfg = self._map_config.grid
+        if grid_cfg.model != "log-odds":
+            grid_cfg = replace(grid_cfg, model="log-odds")  # the score reads log-odds
+        self._map_config = replace(self._map_config, grid=grid_cfg)
+        empty = make_grid(grid_cfg)
+        self._maps = [empty] * len(self.particles)
+
+    def _resampled(self, parents: np.ndarray) -> None:
+        self._maps = [self._maps[k] for k in parents]
+        self.paths.resampled(parents)
+        self.corrections.resampled(parents)
+
+    def _observation(self, msg: DepthFrame | LaserScan):
+        cfg = self._map_config
+        q = cfg.point_quantum_m
+        quantum = cfg.grid.resolution_m / 4.0 if q is None else q
+        if isinstance(msg, DepthFrame):
+            return project_depth_frame(msg, self.calibration, cfg.depth, quantum=quantum)
+        return scan_to_observation(msg, (0.0, 0.0, 0.0), cfg.scan).compacted(quantum)
+
+    def _integrate(self, obs) -> None:
+        """The frame into every particle's map at its pose, copying shared maps first."""
+        users: dict[int, int] = {}
+        for m in self._maps:
+            users[id(m)] = users.get(id(m), 0) + 1
+        for i, pose in enumerate(self.particles):
+            grid = self._maps[i]
+            if users[id(grid)] > 1:
+                users[id(grid)] -= 1
+                grid = self._maps[i] = grid.copy()
+                users[id(grid)] = 1
+                self.counts["map_copies"] += 1
+            grid.integrate(obs.in_world(pose), centre_xy=pose[:2])
+
+    # -- frames ---------------------------------------------------------------------------
+    def _observe_frame(self, msg: DepthFrame | LaserScan) -> None:
+        c = self.config
+        if not c.use_scans:
+            return
+        if self._moved[0] < c.scan_every_m and self._moved[1] < c.scan_every_rad:
+            return
+        obs = self._observation(msg)
+        points = self._scoring_points(obs)
+        prior = self._prior_cov()
+        steps = np.array([c.match_fit_step_m, c.match_fit_step_m, c.match_fit_step_rad])
+        log_volume = float(np.log(steps).sum()) - 1.5 * math.log(2.0 * math.pi)
+        new = np.empty_like(self.particles)
+        log_eta = np.zeros(len(self.particles))
+        scored = False
+        for i, grid in enumerate(self._maps):
+            args = self._score_args(grid)
+            if args is None or len(points) < c.min_points:
+                new[i] = sample_gaussians(self.particles[i : i + 1], prior[i : i + 1], self.rng)[0]
+                continue
+            scored = True
+            kernel = (c.match_kernel_cells, c.sigma_hit_m, c.z_hit, c.z_rand)
+            pose, _, matched = hill_climb(
+                *args,
+                points,
+                self.particles[i].copy(),
+                c.match_step_m,
+                c.match_step_rad,
+                c.match_refinements,
+                *kernel,
+            )
+            if matched >= c.min_points:
+                fit = lattice(pose, (1, 1, 1), steps)
+                ll = c.beam_weight * poses_log_likelihood(*args, points, fit, *kernel)
+                mu, cov, eta = gaussian_fit(
+                    fit, ll, self.particles[i : i + 1], prior[i : i + 1], steps
+                )
+                new[i] = sample_gaussians(mu, cov, self.rng)[0]
+                log_eta[i] = eta[0] + log_volume
+                self.counts["scan_matches"] += 1
+            else:
+                new[i] = sample_gaussians(self.particles[i : i + 1], prior[i : i + 1], self.rng)[0]
+                ll, _ = frame_log_likelihood(*args, points, new[i], *kernel)
+                log_eta[i] = c.beam_weight * ll
+                self.counts["unmatched"] += 1
+        correction = new - self.particles
+        correction[:, 2] = wrap_angle(correction[:, 2])
+        self.corrections.snapshot(msg.t, correction)
+        self._segment_totals.append(self._accumulated())
+        self.particles = new
+        self._reset_odometry()
+        if scored:
+            self._update(log_eta / c.weight_gain, msg.t)
+            self.counts["scan_updates"] += 1
+        self._integrate(obs)
+        self._moved = (0.0, 0.0)
+        self.revision += 1
+        self._snapshot(msg.t)
+
+    def _scoring_points(self, obs) -> np.ndarray:
+        """Up to max_beams of the frame's obstacle points within max_range_m (walker frame)."""
+        pts = np.asarray(obs.obstacles, dtype=float)
+        rel = pts - obs.sensor_xy
+        pts = pts[np.einsum("ij,ij->i", rel, rel) <= self.config.max_range_m**2]
+        k = self.config.max_beams
+        if len(pts) > k:
+            pts = pts[np.sort(self.rng.choice(len(pts), size=k, replace=False))]
+        return np.ascontiguousarray(pts)
+
+    def _score_args(self, grid: GridExtent) -> tuple | None:
+        """The grid as the compiled score reads it; None while it is empty."""
+        if not isinstance(grid, OccupancyGrid) or grid.shape[0] == 0:
+            return None
+        i0, j0 = grid.lattice_offset
+        threshold = math.log(grid.OCCUPIED_THRESHOLD / (1.0 - grid.OCCUPIED_THRESHOLD))
+        return (grid.log_odds, i0, j0, grid.resolution, threshold)
+
+    # -- outputs --------------------------------------------------------------------------
+    def _best(self) -> int:
+        return int(np.argmax(self._weights))
+
+    def _record(self, t: float) -> None:
+        self.track.record(t, self.particles[self._best()].copy())
+        self._snapshot(t)
+        self._variance.append((t, *self._accumulated()))
+
+    def _accumulated(self) -> tuple[float, float]:
+        """The odometry variance (x + y, θ) accumulated since the last frame."""
+        cov = self._delta_cov
+        return cov[0][0] + cov[1][1], cov[2][2]
+
+    def _snapshot(self, t: float) -> None:
+        self.paths.snapshot(t, self.particles)
+
+    def estimate(self) -> PoseEstimate:
+        est = super().estimate()
+        return PoseEstimate(est.t, self.particles[self._best()].copy(), est.covariance)
+
+    def trajectory(self) -> Trajectory:
+        """The whole path of the most probable particle, read back through resampling,
+        with each frame's correction spread over the odometry before it (module doc)."""
+        if not self.track:
+            return self.track.trajectory()
+        key = (self.revision, self.track.last_t)
+        if self._path_cache is None or self._path_cache[0] != key:
+            best = self._best()
+            times, paths = self.paths.paths(self.particles)
+            path = paths[:, best, :] if len(times) else np.empty((0, 3))
+            t_now = self.track.last_t
+            if len(times) and times[-1] >= t_now:
+                times, path = times[:-1], path[:-1]
+            times = np.append(times, t_now)
+            path = np.vstack([path, self.particles[best]])
+            self._path_cache = (key, Trajectory(times, self._spread(times, path, best)))
+        return self._path_cache[1]
+
+    def _spread(self, times: np.ndarray, path: np.ndarray, best: int) -> np.ndarray:
+        """`path` (of particle `best`) with each frame's correction spread back (module
+        docstring): at a time s before frame k and after frame k − 1, + f(s)·δ_k with
+        f = accumulated variance at s / accumulated variance at frame k, per axis."""
+        c_times, deltas = self.corrections.paths(self.particles)
+        if not len(c_times):
+            return path
+        delta = deltas[:, best, :]
+        var = np.array(self._variance).reshape(-1, 3)
+        totals = np.array(self._segment_totals).reshape(-1, 2)
+        k = np.searchsorted(c_times, times, side="left")  # the next frame at or after s
+        inside = (k < len(c_times)) & (times < c_times[np.minimum(k, len(c_times) - 1)])
+        k = k[inside]
+        v_xy = np.interp(times[inside], var[:, 0], var[:, 1])
+        v_th = np.interp(times[inside], var[:, 0], var[:, 2])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f_xy = np.clip(np.nan_to_num(v_xy / totals[k, 0]), 0.0, 1.0)
+            f_th = np.clip(np.nan_to_num(v_th / totals[k, 1]), 0.0, 1.0)
+        out = path.copy()
+        out[inside, 0] += f_xy * delta[k, 0]
+        out[inside, 1] += f_xy * delta[k, 1]
+        out[inside, 2] = wrap_angle(out[inside, 2] + f_th * delta[k, 2])
+        return out
+
+    def particle_maps(self) -> list[GridExtent]:
+        """Each particle's own map (shared objects where resampling copied a particle)."""
+        return list(self._maps)
+
+    def diagnostics(self) -> dict:
+        notes = super().diagnostics()
+        notes["distinct_maps"] = len({id(m) for m in self._maps})
+        return notes

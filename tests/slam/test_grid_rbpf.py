@@ -1,0 +1,197 @@
+"""The Rao-Blackwellized particle filter with a map per particle (slam.grid_rbpf), its
+compiled scan score and hill climbing (slam.grid_kernels) and the improved proposal's
+Gaussian fit (slam.scan_proposal). Synthetic laser worlds are seeded; the Intel-lab test
+reads ../shared/data/intel_lab and skips when it is absent."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from laser_worlds import ROOM, loop_messages, render_scan
+
+from experiments.metrics import relation_errors
+from experiments.pipeline import Pipeline
+from hardware.calibration import WalkerCalibration
+from mapping.grid import OccupancyGrid
+from mapping.scan_points import scan_to_observation
+from slam.base import create
+from slam.geometry import between
+from slam.grid_kernels import frame_log_likelihood, hill_climb
+from slam.grid_rbpf import GridRbpf
+from slam.motion import MotionNoise
+from slam.particle_filter import ParticleFilterConfig
+from slam.scan_proposal import gaussian_fit, lattice
+
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+INTEL = DATA / "intel_lab" / "intel.gfs.log.gz"
+INTEL_RELATIONS = DATA / "intel_lab" / "intel.relations"
+KERNEL = (1, 0.1, 0.9, 0.1)  # cells, σ, z_hit, z_rand
+
+
+def _room_map(pose=(4.0, 4.5, 0.3)):
+    """An occupancy grid of ROOM from 20 noisy scans at `pose`, and a fresh scan's points."""
+    rng = np.random.default_rng(3)
+    grid = OccupancyGrid()
+    for _ in range(20):
+        obs = scan_to_observation(render_scan(ROOM, pose, noise_m=0.01, rng=rng))
+        grid.integrate(obs.compacted(0.0125).in_world(np.array(pose)))
+    pts = scan_to_observation(render_scan(ROOM, pose, noise_m=0.01, rng=rng)).obstacles
+    i0, j0 = grid.lattice_offset
+    args = (grid.log_odds, i0, j0, grid.resolution, math.log(0.65 / 0.35))
+    return args, np.ascontiguousarray(pts[::3], dtype=float)
+
+
+def test_scan_score_peaks_at_the_true_pose():
+    args, pts = _room_map()
+    true = np.array([4.0, 4.5, 0.3])
+    at_truth, matched = frame_log_likelihood(*args, pts, true, *KERNEL)
+    assert matched > 0.95 * len(pts)
+    for offset in ([0.05, 0, 0], [0, -0.05, 0], [0, 0, 0.02], [0.1, 0.1, -0.03]):
+        score, _ = frame_log_likelihood(*args, pts, true + np.array(offset), *KERNEL)
+        assert score < at_truth
+    # far off, nothing matches and every point scores the floor log(z_rand)
+    score, matched = frame_log_likelihood(*args, pts, np.array([30.0, 30.0, 0.0]), *KERNEL)
+    assert matched == 0 and score == pytest.approx(len(pts) * math.log(0.1))
+
+
+@pytest.mark.parametrize("offset", [(0.12, -0.08, 0.06), (-0.1, 0.15, -0.08)])
+def test_hill_climbing_recovers_the_pose(offset):
+    args, pts = _room_map()
+    true = np.array([4.0, 4.5, 0.3])
+    pose, _, matched = hill_climb(*args, pts, true + np.array(offset), 0.05, 0.05, 6, *KERNEL)
+    err = between(true, pose)
+    # within the map's resolution: the score pulls points onto the centres of the 5 cm
+    # cells they hit (the walls here lie on cell boundaries, the worst case), from a
+    # start 14 cm and 3-5° off
+    assert math.hypot(err[0], err[1]) < 0.03 and abs(err[2]) < math.radians(0.5)
+    assert matched > 0.9 * len(pts)
+
+
+def test_gaussian_fit_is_the_product_of_two_gaussians():
+    """Likelihood N(a, A) times prior N(b, B) on a fine lattice: mean and covariance of
+    the normalised product, and log η = log ∫ exp(log L) N(x; b, B) dx."""
+    a, b = np.array([0.02, -0.01, 0.005]), np.array([-0.01, 0.015, -0.004])
+    big_a = np.diag([0.02, 0.015, 0.01]) ** 2
+    big_b = np.array([[0.03**2, 0.0002, 0.0], [0.0002, 0.025**2, 0.0001], [0.0, 0.0001, 0.012**2]])
+    steps = np.array([0.004, 0.004, 0.002])
+    g = lattice(np.zeros(3), (25, 25, 25), steps)
+    d = g - a
+    log_l = -0.5 * np.einsum("mi,ij,mj->m", d, np.linalg.inv(big_a), d)
+    mu, cov, log_eta = gaussian_fit(g, log_l, b[None], big_b[None], steps)
+    want_cov = np.linalg.inv(np.linalg.inv(big_a) + np.linalg.inv(big_b))
+    want_mu = want_cov @ (np.linalg.solve(big_a, a) + np.linalg.solve(big_b, b))
+    np.testing.assert_allclose(mu[0], want_mu, atol=2e-4)
+    np.testing.assert_allclose(cov[0], want_cov, rtol=0.02, atol=2e-7)
+    # ∫ exp(−½ (x−a)ᵀA⁻¹(x−a)) N(x; b, B) dx = √(det A / det(A + B)) exp(−½ (a−b)ᵀ(A+B)⁻¹(a−b))
+    s = big_a + big_b
+    want = 0.5 * (np.linalg.slogdet(big_a)[1] - np.linalg.slogdet(s)[1]) - 0.5 * (a - b) @ (
+        np.linalg.solve(s, a - b)
+    )
+    got = log_eta[0] + np.log(steps).sum() - 1.5 * math.log(2 * math.pi)
+    assert got == pytest.approx(want, abs=0.01)
+
+
+def _run(msgs, cfg: ParticleFilterConfig, start):
+    cal = WalkerCalibration()
+    loc = create("particle-filter", cal, cfg, initial_pose=start)
+    pipe = Pipeline(loc, cal, reference_map=False)
+    for m in msgs:
+        pipe.feed(m)
+    return loc, pipe
+
+
+RBPF = ParticleFilterConfig(
+    use_scans=True,
+    maps="per-particle",
+    map_particles=10,
+    max_range_m=20.0,
+    max_beams=120,
+    beam_weight=1.0,
+    scan_every_m=0.0,
+    scan_every_rad=0.0,
+)
+
+
+def test_a_map_per_particle_removes_the_drift_of_biased_odometry():
+    msgs, truth = loop_messages()
+    start = tuple(truth.poses[0])
+    dr, _ = _run(msgs, ParticleFilterConfig(), start)
+    rbpf, pipe = _run(msgs, RBPF, start)
+    assert isinstance(rbpf, GridRbpf) and rbpf.revises_past
+    d = rbpf.diagnostics()
+    assert d["scan_matches"] > 0.9 * d["scan_updates"] * 10 and d["unmatched"] == 0
+    final_dr = between(truth.poses[-1], dr.trajectory().poses[-1])
+    final = between(truth.poses[-1], rbpf.trajectory().poses[-1])
+    assert math.hypot(*final_dr[:2]) > 1.0  # the biased odometry drifts
+    assert math.hypot(*final[:2]) < 0.1 and abs(final[2]) < math.radians(2.0)
+    # the whole path of the best particle, not only its end
+    est = rbpf.trajectory().interpolate(truth.t[::20])
+    err = np.hypot(*(est[:, :2] - truth.poses[::20, :2]).T)
+    assert np.sqrt(np.mean(err**2)) < 0.1
+    assert pipe.rebuild_map()  # the past was revised: the shared map is re-made along it
+
+
+def test_same_seed_same_path():
+    msgs, truth = loop_messages(laps=1)
+    start = tuple(truth.poses[0])
+    a, _ = _run(msgs, RBPF, start)
+    b, _ = _run(msgs, RBPF, start)
+    np.testing.assert_array_equal(a.trajectory().poses, b.trajectory().poses)
+
+
+def test_resampled_particles_share_a_map_until_they_write_it():
+    msgs, truth = loop_messages(laps=1)
+    rbpf, _ = _run(msgs[:200], RBPF, tuple(truth.poses[0]))
+    maps = rbpf.particle_maps()
+    rbpf._resampled(np.zeros(len(maps), dtype=int))  # every particle a copy of particle 0
+    assert len({id(m) for m in rbpf.particle_maps()}) == 1
+    before = maps[0].log_odds.copy()
+    scan = next(m for m in msgs[200:] if type(m).__name__ == "LaserScan")
+    obs = scan_to_observation(scan).compacted(0.0125)
+    rbpf._integrate(obs)
+    after = rbpf.particle_maps()
+    assert len({id(m) for m in after}) == len(after)  # each wrote into its own copy
+    assert sum(m is maps[0] for m in after) == 1  # the last user keeps the original
+    for m, pose in zip(after, rbpf.particles, strict=True):
+        want = OccupancyGrid(maps[0].config)
+        want._offset, want._layers = maps[0]._offset.copy(), {"log_odds": before.copy()}
+        want.integrate(obs.in_world(pose), centre_xy=pose[:2])
+        np.testing.assert_array_equal(m.log_odds, want.log_odds)
+
+
+@pytest.mark.data
+@pytest.mark.slow
+@pytest.mark.skipif(not INTEL.exists(), reason=f"Intel lab log not found at {INTEL}")
+def test_intel_lab_subset_relations_beat_dead_reckoning():
+    from hardware.datasets import open_dataset
+
+    ds = open_dataset("carmen", INTEL, relations=INTEL_RELATIONS)
+    msgs = [m for m in ds.messages() if m.t <= 500.0]  # out of the start room and back
+    start = ds.metadata["config"]["initial_pose"]
+    rel = np.array(ds.metadata["relations"]["rows"])
+    odometry = MotionNoise(velocity_model="distance")  # CARMEN's odometry timing
+    cfg = ParticleFilterConfig(
+        use_scans=True,
+        maps="per-particle",
+        noise=odometry,
+        max_range_m=20.0,
+        max_beams=180,
+        beam_weight=1.0,
+        scan_every_m=0.0,
+        scan_every_rad=0.0,
+    )
+    dr = create("dead-reckoning", ds.calibration, initial_pose=start)
+    for m in msgs:
+        dr.process(m)
+    rbpf = create("particle-filter", ds.calibration, cfg, initial_pose=start)
+    pipe = Pipeline(rbpf, ds.calibration, reference_map=False)
+    for m in msgs:
+        pipe.feed(m)
+    e_dr = relation_errors(dr.trajectory(), rel)
+    e = relation_errors(rbpf.trajectory(), rel)
+    assert e["relations_used"] > 400
+    assert e["relations_trans_mean_m"] < 0.1
+    assert e["relations_trans_mean_m"] < 0.05 * e_dr["relations_trans_mean_m"]
