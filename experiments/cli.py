@@ -258,7 +258,7 @@ def replay(
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
     from control.base import CONTROLLERS
     from experiments.run import replay_log
-    from experiments.studies.settings import build_config
+    from experiments.studies.settings import build_config, source_settings
     from hardware.log import read_log
     from mapping.grid import GridConfig, MapModel
     from mapping.mapper import MapperConfig
@@ -266,7 +266,7 @@ def replay(
 
     LOCALIZERS.spec(localizer)  # an unknown name: one line, before any work
     overrides = _localizer_overrides(set_, [localizer]).get(localizer, {})
-    localizer_config = build_config(LOCALIZERS, localizer, overrides.items())
+    build_config(LOCALIZERS, localizer, overrides.items())  # a bad --set fails early
     if controller is not None:
         CONTROLLERS.spec(controller)  # an unknown name: one line, before any work
     if map_model not in [m.value for m in MapModel]:
@@ -288,6 +288,9 @@ def replay(
             start.append(t)
         return t - start[0]
 
+    # the settings the source proposes (e.g. a dataset's noise levels), then --set
+    proposed = source_settings(LOCALIZERS, localizer, trial.metadata)
+    localizer_config = build_config(LOCALIZERS, localizer, [*proposed.items(), *overrides.items()])
     with progress_bar(f"replaying with {localizer}", total) as update:
         res = replay_log(
             trial,
