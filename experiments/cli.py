@@ -201,9 +201,25 @@ TimeOffsetOpt = Annotated[
 ]
 
 
-def _dataset_options(robot, relations, time_offset) -> dict:
+DatasetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--dataset-option",
+        help="NAME=VALUE: an option of the dataset importer (with --format), e.g. "
+        "calibration=none for MRCLAM's uncorrected values; repeatable",
+    ),
+]
+
+
+def _dataset_options(robot, relations, time_offset, extra: list[str] | None = None) -> dict:
     given = {"robot": robot, "relations": relations, "time_offset": time_offset}
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in given.items() if v is not None}
+    out = {k: (str(v) if isinstance(v, Path) else v) for k, v in given.items() if v is not None}
+    for text in extra or []:
+        name, eq, value = text.partition("=")
+        if not eq or not name.strip():
+            raise ValueError(f"--dataset-option takes NAME=VALUE, got '{text}'")
+        out[name.strip()] = value.strip()
+    return out
 
 
 @app.command(name="import")
@@ -215,12 +231,13 @@ def import_(
     robot: RobotOpt = None,
     relations: RelationsOpt = None,
     time_offset: TimeOffsetOpt = None,
+    dataset_option: DatasetOpt = None,
 ) -> None:
     """Convert a public dataset into a trial log (messages, calibration, ground truth)."""
     from hardware.datasets import import_dataset
 
     summary = import_dataset(
-        format, path, output, **_dataset_options(robot, relations, time_offset)
+        format, path, output, **_dataset_options(robot, relations, time_offset, dataset_option)
     )
     d = summary.to_dict()
     console.print(
@@ -253,12 +270,13 @@ def replay(
         ),
     ] = None,
     set_: SetOpt = None,
+    dataset_option: DatasetOpt = None,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
     from control.base import CONTROLLERS
     from experiments.run import replay_log
-    from experiments.studies.settings import build_config
+    from experiments.studies.settings import build_config, source_settings
     from hardware.log import read_log
     from mapping.grid import GridConfig, MapModel
     from mapping.mapper import MapperConfig
@@ -266,7 +284,7 @@ def replay(
 
     LOCALIZERS.spec(localizer)  # an unknown name: one line, before any work
     overrides = _localizer_overrides(set_, [localizer]).get(localizer, {})
-    localizer_config = build_config(LOCALIZERS, localizer, overrides.items())
+    build_config(LOCALIZERS, localizer, overrides.items())  # a bad --set fails early
     if controller is not None:
         CONTROLLERS.spec(controller)  # an unknown name: one line, before any work
     if map_model not in [m.value for m in MapModel]:
@@ -275,7 +293,8 @@ def replay(
     if format is not None:
         from hardware.datasets import open_dataset
 
-        trial = open_dataset(format, log, **_dataset_options(robot, relations, time_offset))
+        opts = _dataset_options(robot, relations, time_offset, dataset_option)
+        trial = open_dataset(format, log, **opts)
         total = None  # unknown until read
     else:
         trial = read_log(log)  # fail fast on a bad file, before the progress bar
@@ -288,6 +307,9 @@ def replay(
             start.append(t)
         return t - start[0]
 
+    # the settings the source proposes (e.g. a dataset's noise levels), then --set
+    proposed = source_settings(LOCALIZERS, localizer, trial.metadata)
+    localizer_config = build_config(LOCALIZERS, localizer, [*proposed.items(), *overrides.items()])
     with progress_bar(f"replaying with {localizer}", total) as update:
         res = replay_log(
             trial,
@@ -400,6 +422,7 @@ def compare(
     relations: RelationsOpt = None,
     time_offset: TimeOffsetOpt = None,
     set_: SetOpt = None,
+    dataset_option: DatasetOpt = None,
 ) -> None:
     """Run localizers on logs; write results.csv, results.db, report.md; print the table.
 
@@ -424,11 +447,13 @@ def compare(
                 ) from None
         for log in logs:
             for r in robots:
-                opts = _dataset_options(r, relations, time_offset)
+                opts = _dataset_options(r, relations, time_offset, dataset_option)
                 sources.append(open_dataset(format, log, **opts))
     else:
-        if robot is not None or relations is not None or time_offset is not None:
-            raise ValueError("--robot, --relations and --time-offset need --format")
+        if robot is not None or relations is not None or time_offset is not None or dataset_option:
+            raise ValueError(
+                "--robot, --relations, --time-offset and --dataset-option need --format"
+            )
         for log in logs:
             read_log(log)  # fail fast on a bad file, before any run
         sources = list(logs)

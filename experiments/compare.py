@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from experiments.run import ReplayResult, replay_log
-from experiments.studies.settings import build_config
+from experiments.studies.settings import build_config, source_settings
 from hardware.datasets import Dataset
 from hardware.log import TrialLog, read_log
 from slam.base import LOCALIZERS
@@ -123,7 +123,9 @@ def compare(
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> CompareResult:
     """Every localizer on every source; `overrides` = {localizer: {field path: value}}
-    changes fields of a localizer's default config (experiments.studies.settings)."""
+    changes fields of a localizer's default config (experiments.studies.settings), after
+    the settings the source proposes (its metadata "localizer_settings", e.g. a dataset's
+    fitted noise levels: `source_settings`)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.db").unlink(missing_ok=True)  # this comparison's runs only, like the CSV
@@ -138,7 +140,9 @@ def compare(
         trial = source if isinstance(source, TrialLog | Dataset) else read_log(source)
         name = source_name(source)
         for loc in localizers:
-            base = build_config(LOCALIZERS, loc, (overrides or {}).get(loc, {}).items())
+            proposed = source_settings(LOCALIZERS, loc, trial.metadata)
+            user = (overrides or {}).get(loc, {})
+            base = build_config(LOCALIZERS, loc, [*proposed.items(), *user.items()])
             for seed in range(seeds) if is_stochastic(loc) else [None]:
                 cfg = base if seed is None else replace(base, seed=seed)
                 run_dir = out / name / loc / ("run" if seed is None else f"seed{seed}")

@@ -22,6 +22,7 @@ from experiments import drag
 from experiments import metrics as M
 from experiments.drag import DragConfig
 from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
+from experiments.studies.settings import build_config, source_settings
 from hardware.datasets import Dataset
 from hardware.log import LogWriter, TrialLog, read_log
 from hardware.registry import UnknownNameError
@@ -30,7 +31,7 @@ from hardware.sim.world import World, load_world
 from mapping.export import save_map_server, save_png
 from mapping.mapper import MapperConfig
 from slam import landmarks
-from slam.base import create
+from slam.base import LOCALIZERS, create
 
 VERSION = metadata.version("walker-slam")  # from pyproject.toml, via the install
 # The mapper's obstacle band: what the map should show of the true world.
@@ -139,6 +140,9 @@ def replay_log(
     over-steer) during the replay. Their time is left out of the real-time factor, but
     they also slow the loop itself (allocations, caches): compare and the benchmarks
     switch them off.
+    localizer_config None: the localizer's defaults with the settings the source proposes
+    (metadata "localizer_settings", e.g. a dataset's fitted noise levels; see
+    `experiments.studies.settings.source_settings`); a config given is used as it is.
     """
     trial = log if isinstance(log, TrialLog | Dataset) else read_log(log)
     log_path = trial.path if isinstance(trial, TrialLog) else f"{trial.name}"
@@ -146,6 +150,9 @@ def replay_log(
     world = World.from_dict(trial.metadata["world"]) if "world" in trial.metadata else None
     initial_pose = trial.metadata.get("config", {}).get("initial_pose")
     true_landmarks = landmarks.from_metadata(trial.metadata)
+    proposed = source_settings(LOCALIZERS, localizer, trial.metadata)
+    if localizer_config is None:
+        localizer_config = build_config(LOCALIZERS, localizer, proposed.items())
     loc = create(
         localizer,
         cal,
@@ -273,6 +280,7 @@ def replay_log(
         "log": str(log_path),
         "localizer": localizer,
         "localizer_config": _jsonable(loc.config),
+        "source_localizer_settings": proposed,
         "mapper_config": _jsonable(pipeline.mapper.config),
         "controller": controller,
         "drag_config": asdict(drag_cfg),

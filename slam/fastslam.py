@@ -38,7 +38,10 @@ noise R(z):
                   e.g. a walker standing still, needs no special case)
     weight        w ← w · N(ν; 0, S)            (1.0: P = 0, so S = Q and μ = ŝ)
 
-Several observations in one message refine the proposal one after another (each
+Several observations of one time — in one message (a frame's tags), or in consecutive
+messages with the same timestamp (range-bearing datasets such as MRCLAM give each its
+own message: they are held until a message of another time or the next odometry, or
+until an output is asked for) — refine the proposal one after another (each
 linearised at the refined mean, each weighting the particle by its predictive density,
 whose product is the joint likelihood); then the pose is sampled once, every landmark
 seen is updated with an EKF step at the sampled pose, and new landmarks are initialised
@@ -409,17 +412,26 @@ class FastSlam(Localizer):
         self.revises_past = bool(config.smoothed_trajectory)
         self.paths = ParticlePaths(config.path_snapshot_s)
         self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
+        self._held: list[tuple[int, np.ndarray]] = []  # observations of one time, not yet used
+        self._held_t = math.nan
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
         inc = self.odometry.increment(msg)
         if inc is not None:
+            self._flush()
             self._move(inc)
             self._record(msg.t)
         elif (obs := landmark_observation(msg, self.calibration)) is not None:
             self._observe(obs)
         if not self.track and self.odometry.has_odometry:
             self._record(msg.t)
+
+    def _flush(self) -> None:
+        """Fold the held observations (all of one time) into the filter."""
+        if self._held:
+            items, self._held = self._held, []
+            self._update(items)
 
     def _move(self, inc: Increment) -> None:
         q = inc.cov
@@ -484,8 +496,13 @@ class FastSlam(Localizer):
             else:
                 zz = np.array([z[0], z[1], yaw]) if self.dim == 3 else np.asarray(z, dtype=float)
                 items.append((int(lid), zz))
-        if items:
-            self._update(items)
+        if not items:
+            return
+        if self._held and obs.t != self._held_t:
+            self._flush()
+        self._held.extend(items)
+        self._held_t = obs.t
+        self.revision += 1  # the past will change when they are used
 
     def _gated(self, nu: np.ndarray, s: np.ndarray, w: np.ndarray) -> bool:
         """Whether ν is outside the gate of the weighted mixture of N(ν_i, S_i)."""
@@ -608,6 +625,7 @@ class FastSlam(Localizer):
     def estimate(self) -> PoseEstimate:
         """Weighted mean pose (circular mean of θ) and covariance: the particles' weighted
         spread plus (2.0) their weighted motion covariance not yet sampled."""
+        self._flush()
         t = self.track.last_t
         mean = self._mean_pose()
         d = self.poses - mean
@@ -618,6 +636,7 @@ class FastSlam(Localizer):
 
     def trajectory(self) -> Trajectory:
         """The smoothed path (config.smoothed_trajectory) or the filtered means."""
+        self._flush()
         if not self.revises_past or not self.track:
             return self.track.trajectory()
         key = (self.revision, self.track.last_t)
@@ -629,6 +648,7 @@ class FastSlam(Localizer):
     def landmarks(self, full: bool = False) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Landmark id → (mean (2,), covariance 2×2) of the highest-weight particle; with
         full=True and observation "tag-pose", (u, v, ψ) and its 3×3 covariance."""
+        self._flush()
         best = int(np.argmax(self.log_weights))
         k = self.dim if full else 2
         return {
@@ -638,6 +658,7 @@ class FastSlam(Localizer):
         }
 
     def diagnostics(self) -> dict:
+        self._flush()
         notes: dict = dict(self.counts)
         notes["version"] = self.config.version
         notes["particles"] = self.n

@@ -65,9 +65,9 @@ class GridRbpf(ParticleFilter):
     revises_past = True
 
     def __init__(self, config: ParticleFilterConfig, calibration: WalkerCalibration) -> None:
-        super().__init__(
-            replace(config, n_particles=config.map_particles, proposal="scan"), calibration
-        )
+        base = replace(config, n_particles=config.map_particles, proposal="scan", smoother="none")
+        super().__init__(base, calibration)
+        self.revises_past = True  # the best particle's path (the base's smoothers unused)
         self._maps: list[GridExtent] = []
         self._map_config = MapperConfig()
         self.paths = ParticlePaths(config.path_snapshot_s)
@@ -211,7 +211,7 @@ class GridRbpf(ParticleFilter):
 
     def _accumulated(self) -> tuple[float, float]:
         """The odometry variance (x + y, θ) accumulated since the last frame."""
-        cov = self._delta_cov
+        cov = self._odo_cov
         return cov[0][0] + cov[1][1], cov[2][2]
 
     def _snapshot(self, t: float) -> None:

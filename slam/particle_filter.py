@@ -30,11 +30,36 @@ GMapping on the one shared map) and weights it by that product's mass. A frame t
 cannot be scored (empty map, too few points in mapped cells) and a landmark update first
 draw the accumulated odometry noise, as "motion" would have.
 
+Landmark likelihood is robust: each observation's density is the mixture
+(1 − ε)·N(z; ẑ, R) + ε·u of the Gaussian and a uniform u = 1/(outlier_range_m·2π) over
+the sensor's range and all bearings (ε = outlier_prob), so one wrong-ID or misread
+measurement (MRCLAM has a few, π off in bearing) cannot wipe out the particles that are
+right; the uniform floor is the z_rand of Thrun et al.'s beam model.
+
 Weights live in log space, normalised with logsumexp; systematic resampling (as
 filterpy.monte_carlo.systematic_resample, vectorised and drawing from the filter's own
-generator) runs when N_eff = 1/Σw² falls below resample_threshold·N. The estimate is the
-weighted mean (circular mean for θ) with the weighted covariance; the trajectory is the
-estimate after every odometry message (a filter does not revise the past).
+generator) runs when N_eff = 1/Σw² falls below resample_threshold·N, checked before the
+next motion or an observation at a later time: the observations that share a timestamp
+(several landmarks in one image) are all weighted in before the particles are resampled.
+The estimate is the weighted mean (circular mean for θ) with the weighted covariance.
+
+Trajectory (`smoother`): an observation also tells where the walker was before it, so
+the smoothers revise the past (`revises_past`: the pipeline rebuilds the map along it):
+
+- "rts" (default): a Rauch–Tung–Striebel backward pass over the filtered mean and
+  covariance after every odometry message (slam.rts), the odometry between them the
+  motion model: a correction is spread back over the stretch that led to it in
+  proportion to the odometry's uncertainty. It is as good as the filter's noise models
+  are consistent: on MRCLAM (fitted noise) ATE 0.108 → 0.085 m over robots 1-5; on the
+  simulated course, whose tag camera measures bearing ~50× (rms 0.0006 rad) and range
+  ~2× (0.04 m) more precisely than the default noise says, the filtered covariance is
+  too wide and the smoother leans on the odometry too much (0.013 → 0.017 m; RPE
+  0.012 → 0.007 m);
+- "ancestry": the weighted mean of the particles' whole paths read back through
+  resampling (slam.particle_paths, as FastSLAM does), every path_snapshot_s. The old past
+  degenerates to one particle's path, which carries that particle's motion noise
+  (simulated course 0.026 m; MRCLAM 0.090 m);
+- "none": the filtered estimate after every odometry message.
 """
 
 from __future__ import annotations
@@ -58,7 +83,16 @@ from slam.measurement import (
     landmark_observation,
     range_bearing,
 )
-from slam.motion import Increment, MotionNoise, OdometryModel, apply_increment, propagate
+from slam.motion import (
+    Increment,
+    MotionNoise,
+    OdometryModel,
+    apply_increment,
+    increment_jacobians,
+    propagate,
+)
+from slam.particle_paths import ParticlePaths
+from slam.rts import rts_smooth
 from slam.scan_proposal import gaussian_fit, lattice, rotate_covariance, sample_gaussians
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
@@ -67,6 +101,7 @@ ODOMETRY_ONLY_NOTE = "no landmark observations and no map: odometry only"
 # computed: room for the walker to move until the next refresh, and for the camera's
 # offset from the walker origin.
 FIELD_MARGIN_M = 1.5
+SMOOTHERS = ("rts", "ancestry", "none")
 
 
 @dataclass(frozen=True)
@@ -108,6 +143,11 @@ class ParticleFilterConfig:
         consecutive frames repeat the same evidence; 0, 0: every frame.
     seed: every random draw comes from numpy.random.default_rng(seed).
     resample_threshold: resample when N_eff < resample_threshold·n_particles.
+    outlier_prob, outlier_range_m: the robust landmark likelihood (module docstring): the
+        share ε of observations that are outliers, uniform over outlier_range_m of range
+        and all bearings; 0 = the plain Gaussian.
+    smoother: "rts" | "ancestry" | "none": what `trajectory()` is (module docstring);
+        path_snapshot_s: the ancestry's sampling interval (and the per-particle maps' paths').
     proposal: "motion" or "scan" (module docstring). For "scan": the coarse search
         covers the particles' prior (3σ of the accumulated odometry covariance, plus
         their spread) clipped to proposal_window_m (min, max half-width in x and y) and
@@ -123,8 +163,8 @@ class ParticleFilterConfig:
         against its map: match_kernel_cells (search ± cells around each point),
         match_step_m / match_step_rad (first steps, halved match_refinements times),
         match_fit_step_m / match_fit_step_rad (the lattice the proposal's Gaussian is
-        fitted on); path_snapshot_s: how often the particles' poses are kept for their
-        paths (slam.particle_paths); weight_gain: a frame's log-weights are divided by
+        fitted on); its trajectory is the most probable particle's path (`smoother` is
+        not used); weight_gain: a frame's log-weights are divided by
         it (GMapping's "ogain", 3 there): the proposal may follow a sharp likelihood
         while the weights, which decide which particles (and maps) survive, are
         smoothed, so that resampling does not deplete the particles at every frame.
@@ -153,6 +193,11 @@ class ParticleFilterConfig:
     scan_every_rad: float = 0.2
     seed: int = 0
     resample_threshold: float = 0.5
+    outlier_prob: float = 0.01
+    outlier_range_m: float = 10.0
+    smoother: str = "rts"
+    path_snapshot_s: float = 0.1
+
     proposal: str = "motion"
     proposal_window_m: tuple[float, float] = (0.15, 0.5)
     proposal_window_rad: tuple[float, float] = (0.05, 0.3)
@@ -168,10 +213,15 @@ class ParticleFilterConfig:
     match_refinements: int = 5
     match_fit_step_m: float = 0.02
     match_fit_step_rad: float = 0.01
-    path_snapshot_s: float = 0.0
     weight_gain: float = 1.0
 
     def __post_init__(self) -> None:
+        if self.smoother not in SMOOTHERS:
+            raise ValueError(
+                f"smoother must be one of {', '.join(SMOOTHERS)}, got {self.smoother!r}"
+            )
+        if not 0.0 <= self.outlier_prob < 1.0 or self.outlier_range_m <= 0:
+            raise ValueError("outlier_prob must be in [0, 1) and outlier_range_m > 0")
         if self.maps not in ("shared", "per-particle"):
             raise ValueError(f"maps must be 'shared' or 'per-particle', got {self.maps!r}")
         if self.map_particles < 1 or self.match_kernel_cells < 0 or self.match_refinements < 0:
@@ -260,8 +310,8 @@ class ParticleFilter(Localizer):
         self._moved = (math.inf, math.inf)  # odometry (|ds|, |dθ|) since the last scored frame
         # proposal "scan": odometry since the particles were last drawn, in the frame of
         # the pose they were drawn at, and its covariance (slam.motion.propagate)
-        self._delta: tuple[float, float, float] = (0.0, 0.0, 0.0)
-        self._delta_cov = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+        self._odo_delta: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._odo_cov = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
         self.counts: dict[str, Any] = {
             "landmark_updates": 0,
             "landmark_observations": 0,
@@ -271,6 +321,19 @@ class ParticleFilter(Localizer):
             "n_eff_min": float(n),
         }
         self.track = TrajectoryRecorder()
+        self._resample_due = False  # weights changed since the last resampling check
+        self._obs_t = -math.inf  # time of the observations weighted in since then
+        self.revises_past = config.smoother != "none"
+        self.paths = ParticlePaths(config.path_snapshot_s)
+        self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
+        # "rts": per recorded pose, the filtered mean and covariance and the odometry since
+        # the previous one (in its frame, with its covariance)
+        self._rts = config.smoother == "rts"
+        self._f_cov: list[np.ndarray] = []
+        self._f_delta: list[np.ndarray] = []
+        self._f_delta_cov: list[np.ndarray] = []
+        self._delta = np.zeros(3)
+        self._delta_cov = np.zeros((3, 3))
 
     # -- the map the scan likelihood uses ------------------------------------------------
     def attach_map(self, source: Any) -> None:
@@ -298,19 +361,23 @@ class ParticleFilter(Localizer):
             self._record(msg.t)
 
     def _predict(self, inc: Increment) -> None:
+        self._maybe_resample()
         if self.config.proposal == "scan":
             self.particles = apply_increment(self.particles, inc.ds, inc.dtheta)
-            self._delta, self._delta_cov, _ = propagate(
-                self._delta, self._delta_cov, inc.ds, inc.dtheta, inc.cov
+            self._odo_delta, self._odo_cov, _ = propagate(
+                self._odo_delta, self._odo_cov, inc.ds, inc.dtheta, inc.cov
             )
-            self._moved = (self._moved[0] + abs(inc.ds), self._moved[1] + abs(inc.dtheta))
-            return
-        l00, l10, l11 = _cholesky_2x2(inc.cov)
-        z = self.rng.standard_normal((2, len(self.particles)))
-        ds = inc.ds + l00 * z[0]
-        dth = inc.dtheta + l10 * z[0] + l11 * z[1]
-        self.particles = apply_increment(self.particles, ds, dth)
+        else:
+            l00, l10, l11 = _cholesky_2x2(inc.cov)
+            z = self.rng.standard_normal((2, len(self.particles)))
+            ds = inc.ds + l00 * z[0]
+            dth = inc.dtheta + l10 * z[0] + l11 * z[1]
+            self.particles = apply_increment(self.particles, ds, dth)
         self._moved = (self._moved[0] + abs(inc.ds), self._moved[1] + abs(inc.dtheta))
+        if self._rts:
+            f, g = increment_jacobians(float(self._delta[2]), inc.ds, inc.dtheta)
+            self._delta = apply_increment(self._delta, inc.ds, inc.dtheta)
+            self._delta_cov = f @ self._delta_cov @ f.T + g @ inc.cov @ g.T
 
     def _observe_landmarks(self, obs: LandmarkObservation) -> None:
         if not len(obs):
@@ -328,7 +395,16 @@ class ParticleFilter(Localizer):
         zhat = range_bearing(self.particles[:, None, :], lm[None, :, :])  # (N, M, 2)
         dr = (z[None, :, 0] - zhat[..., 0]) / sr
         db = wrap_angle(z[None, :, 1] - zhat[..., 1]) / c.bearing_sigma_rad
-        self._update(-0.5 * np.sum(dr * dr + db * db, axis=1), obs.t)
+        log_gauss = -0.5 * (dr * dr + db * db)  # (N, M), without the normaliser
+        if c.outlier_prob > 0.0:
+            # log[(1 − ε) N + ε u] = log N + log1p(ε u / ((1 − ε) N)), per observation
+            log_norm = -np.log(2.0 * math.pi * sr * c.bearing_sigma_rad)  # (M,)
+            log_u = math.log(c.outlier_prob / (2.0 * math.pi * c.outlier_range_m))
+            log_in = math.log1p(-c.outlier_prob) + log_norm + log_gauss
+            log_lik = np.logaddexp(log_in, log_u) - log_norm
+        else:
+            log_lik = log_gauss
+        self._update(np.sum(log_lik, axis=1), obs.t)
         self.counts["landmark_updates"] += 1
         self.counts["landmark_observations"] += len(rows)
 
@@ -368,12 +444,12 @@ class ParticleFilter(Localizer):
         """(N, 3, 3) world-frame covariance of each particle's accumulated odometry, with
         the floor: the odometry frame is the pose the particle was last drawn at."""
         floor = np.diag(np.square(self.config.proposal_sigma_floor))
-        anchor_heading = self.particles[:, 2] - self._delta[2]
-        return rotate_covariance(np.array(self._delta_cov) + floor, anchor_heading)
+        anchor_heading = self.particles[:, 2] - self._odo_delta[2]
+        return rotate_covariance(np.array(self._odo_cov) + floor, anchor_heading)
 
     def _draw_odometry_noise(self) -> None:
         """Proposal "scan": draw the odometry noise accumulated since the last draw."""
-        if self.config.proposal != "scan" or not any(self._delta_cov[i][i] for i in range(3)):
+        if self.config.proposal != "scan" or not any(self._odo_cov[i][i] for i in range(3)):
             return
         cov = self._prior_cov() - np.diag(np.square(self.config.proposal_sigma_floor))
         cov += 1e-18 * np.eye(3)  # positive definite for the Cholesky factor
@@ -381,8 +457,8 @@ class ParticleFilter(Localizer):
         self._reset_odometry()
 
     def _reset_odometry(self) -> None:
-        self._delta = (0.0, 0.0, 0.0)
-        self._delta_cov = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+        self._odo_delta = (0.0, 0.0, 0.0)
+        self._odo_cov = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 
     def _scan_proposal(self, points: np.ndarray, f: _Field, t: float) -> None:
         """Draw every particle from odometry prior × frame likelihood (slam.scan_proposal)."""
@@ -482,24 +558,42 @@ class ParticleFilter(Localizer):
         return np.where(inside, iy * nx + ix, ny * nx)
 
     def _update(self, log_likelihood: np.ndarray, t: float) -> None:
-        """Add per-particle log-likelihoods, normalise, resample when N_eff is low; the
-        pose recorded at time t (if any) becomes the updated estimate."""
+        """Add per-particle log-likelihoods and normalise; the pose recorded at time t (if
+        any) becomes the updated estimate. Resampling waits until the observations of
+        time t are all in (`_maybe_resample`: before the next motion or a later one)."""
+        if t != self._obs_t:
+            self._maybe_resample()
+            self._obs_t = t
         lw = self.log_weights + log_likelihood
         lw -= logsumexp(lw)
         w = np.exp(lw)
-        n = len(w)
         n_eff = 1.0 / float(np.dot(w, w))
         self.counts["n_eff_min"] = min(self.counts["n_eff_min"], n_eff)
-        if n_eff < self.config.resample_threshold * n:
-            idx = systematic_resample(w, self.rng)
-            self.particles = self.particles[idx]
-            self._resampled(idx)
-            lw = np.full(n, -math.log(n))
-            w = np.full(n, 1.0 / n)
-            self.counts["resamples"] += 1
         self.log_weights, self._weights = lw, w
+        self._resample_due = True
+        self.revision += 1
         if self.track.last_t == t:
-            self.track.amend(self._mean())
+            mean, cov = self._moments()
+            self.track.amend(mean)
+            if self._rts:
+                self._f_cov[-1] = cov
+
+    def _maybe_resample(self) -> None:
+        """Systematic resampling when N_eff < resample_threshold·N (after observations)."""
+        if not self._resample_due:
+            return
+        self._resample_due = False
+        n = len(self._weights)
+        if self.n_eff >= self.config.resample_threshold * n:
+            return
+        idx = systematic_resample(self._weights, self.rng)
+        if self.config.smoother == "ancestry":
+            self.paths.resampled(idx)
+        self.particles = self.particles[idx]
+        self._resampled(idx)
+        self.log_weights = np.full(n, -math.log(n))
+        self._weights = np.full(n, 1.0 / n)
+        self.counts["resamples"] += 1
 
     def _resampled(self, parents: np.ndarray) -> None:
         """After resampling: the new particle k is a copy of the old particle parents[k]
@@ -521,21 +615,56 @@ class ParticleFilter(Localizer):
         th = math.atan2(float(w @ np.sin(p[:, 2])), float(w @ np.cos(p[:, 2])))
         return np.array([float(w @ p[:, 0]), float(w @ p[:, 1]), th])
 
-    def _record(self, t: float) -> None:
-        self.track.record(t, self._mean())
-
-    def estimate(self) -> PoseEstimate:
-        t = self.track.last_t
+    def _moments(self) -> tuple[np.ndarray, np.ndarray]:
+        """Weighted mean (circular in θ) and covariance of the particles."""
         mean = self._mean()
         d = self.particles - mean
         d[:, 2] = wrap_angle(d[:, 2])
         cov = (d * self._weights[:, None]).T @ d
         if self.config.proposal == "scan":  # the odometry noise not drawn yet
-            cov = cov + rotate_covariance(np.array(self._delta_cov), mean[2:3])[0]
-        return PoseEstimate(t, mean, 0.5 * (cov + cov.T))
+            cov = cov + rotate_covariance(np.array(self._odo_cov), mean[2:3])[0]
+        return mean, 0.5 * (cov + cov.T)
+
+    def _record(self, t: float) -> None:
+        if not self._rts:
+            self.track.record(t, self._mean())
+        else:
+            mean, cov = self._moments()
+            n = len(self.track)
+            self.track.record(t, mean)
+            if len(self.track) > n:  # a new time: a new step of the smoother
+                self._f_cov.append(cov)
+                self._f_delta.append(self._delta)
+                self._f_delta_cov.append(self._delta_cov)
+                self._delta, self._delta_cov = np.zeros(3), np.zeros((3, 3))
+            elif self.track.last_t == t:  # the same time again: the last step, updated
+                self._f_cov[-1] = cov
+        if self.config.smoother == "ancestry":
+            self.paths.snapshot(t, self.particles)
+
+    def estimate(self) -> PoseEstimate:
+        mean, cov = self._moments()
+        return PoseEstimate(self.track.last_t, mean, cov)
 
     def trajectory(self) -> Trajectory:
-        return self.track.trajectory()
+        """The smoothed path (config.smoother) or the filtered means."""
+        if not self.revises_past or not self.track:
+            return self.track.trajectory()
+        key = (self.revision, self.track.last_t)
+        if self._path_cache is None or self._path_cache[0] != key:
+            if self._rts:
+                filtered = self.track.trajectory()
+                poses = rts_smooth(
+                    filtered.poses,
+                    np.array(self._f_cov),
+                    np.array(self._f_delta),
+                    np.array(self._f_delta_cov),
+                )
+                traj = Trajectory(filtered.t, poses)
+            else:
+                traj = self.paths.mean_path(self._weights, self.track.last_t, self.particles)
+            self._path_cache = (key, traj)
+        return self._path_cache[1]
 
     def diagnostics(self) -> dict:
         notes = dict(self.counts)

@@ -123,6 +123,25 @@ def build_config(registry: Registry, name: str, overrides: Iterable[tuple[str, A
     return cfg
 
 
+SOURCE_SETTINGS = "localizer_settings"
+
+
+def source_settings(registry: Registry, name: str, metadata: Mapping[str, Any]) -> dict[str, Any]:
+    """The settings a recorded source proposes for `name`'s config: its metadata
+    "localizer_settings" ({field path: value}, e.g. a dataset importer's noise levels
+    fitted to that dataset), keeping the fields `name`'s config has. Apply them before
+    the user's --set overrides: `build_config(reg, name, [*settings.items(), *sets])`."""
+    proposed = metadata.get(SOURCE_SETTINGS) or {}
+    out = {}
+    for field, value in proposed.items():
+        try:
+            field_type(registry, name, field)
+        except ValueError:
+            continue
+        out[field] = value
+    return out
+
+
 def parse_sets(
     texts: Iterable[str], registries: Mapping[str, Registry], allowed: Iterable[str]
 ) -> dict[str, dict[str, Any]]:

@@ -24,9 +24,10 @@ Conversion
 - Ground truth rows → `GroundTruthPose` (θ wrapped to (−π, π]).
 - Landmark_Groundtruth.dat → metadata "landmarks" {"6": [x, y], …} and
   "landmark_std" {"6": [x_std, y_std], …}.
-- Times stay absolute Unix seconds, exactly as in the files (float64: ~0.2 µs
-  resolution at 1.25e9 s, finer than the files' 1 ms). All five robots and the ground
-  truth share this clock, so several robots' logs line up.
+- Times stay absolute Unix seconds, as in the files (float64: ~0.2 µs resolution at
+  1.25e9 s, finer than the files' 1 ms); only the odometry's are shifted by the
+  calibration's delay (below). All five robots and the ground truth share this clock,
+  so several robots' logs line up.
 - initial_pose (metadata "config") is the ground truth interpolated at the first
   odometry time (the pose a localizer starts from; "initial_pose_t" records that
   time), or (0, 0, 0) without ground truth.
@@ -45,12 +46,43 @@ Ground truth (option `groundtruth`, metadata "groundtruth" {"kind", "source", "n
 Calibration: the walker defaults, with the iRobot Create's (Roomba base) wheel track
 0.258 m and ~0.34 m round body (Hacking Roomba, Fig. 5-5) as track and footprint. The
 dataset's odometry is velocities, so no encoder calibration applies.
+
+Sensor calibration (option `calibration`, metadata "sensor_calibration")
+-------------------------------------------------------------------------
+Compared with the Vicon ground truth, the files' values have systematic errors that are
+the same on every robot and in both datasets checked (1 and 7):
+
+- The "range" column is the landmark's *forward* distance along the camera axis (what a
+  barcode's apparent height gives), not its Euclidean range: against the truth the
+  recorded range is k·r·cos(bearing) + c, with the b² term of r·(1 − b²/2) fitted at
+  −0.454·r·b² on both datasets (−0.5 for a pure cos), so at the edge of the view
+  (|b| ≈ 0.45 rad) the recorded range is ~10 % short. The conversion
+  r = (z − c) / (k·cos b) removes it (dataset 7: range error rms 0.15 → 0.06 m).
+- The odometry (commanded velocities) leads the motion: the heading and distance
+  increments match the Vicon's best ~0.22 s later (the camera's measurements are on the
+  Vicon's clock to within 0.03 s), and the robots drive 8 % less far and turn 5 % less
+  than commanded.
+
+`calibration="dataset1"` (default) applies the values fitted on Dataset 1's (approximate)
+ground truth, robots 1–4 — so on Dataset 7 they are a held-out calibration (fitted
+on Dataset 7 itself they come out within 0.01 of these: k 1.024, c 0.041 m, delay
+0.20–0.23 s, speed 0.906, turn 0.955): range r = (z − 0.050) / (1.0218·cos b), odometry
+times + 0.22 s, v × 0.917, ω × 0.945. `calibration="none"`: the files' values as they are.
+
+With the calibration the metadata "localizer_settings" also gives the noise levels
+fitted on Dataset 1 ({field path: value}, applied by replay and compare to every
+localizer config that has the field, before any --set): range σ 0.03 + 0.015·r m
+(the calibrated range's rms error grows as ~0.015·r; the floor covers the robots'
+own range biases of a few cm, which are constant in time and so not averaged away),
+bearing σ 0.015 rad (rms 0.016–0.019), and velocity-odometry noise over 1 s of
+σ(ds) = 0.13·|v|, σ(dθ) = 0.23·|ω| + 0.011 rad (slam.motion.MotionNoise). Without the
+calibration there are none (the localizers' defaults were fitted to the raw files).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -78,18 +110,58 @@ APPROX_DIR = "groundtruth_approx"
 
 CREATE_TRACK_M = 0.258
 CREATE_DIAMETER_M = 0.34
+CALIBRATIONS = ("dataset1", "none")
+
+
+@dataclass(frozen=True)
+class MrclamCalibration:
+    """Corrections of the files' values (module docstring): recorded range z is the
+    forward distance, z = range_scale·r·cos(b) + range_offset_m; odometry takes effect
+    odometry_delay_s after its timestamp, at velocity_scale·v and omega_scale·ω."""
+
+    range_scale: float = 1.0
+    range_offset_m: float = 0.0
+    forward_range: bool = False
+    odometry_delay_s: float = 0.0
+    velocity_scale: float = 1.0
+    omega_scale: float = 1.0
+
+
+# Fitted on Dataset 1's approximate ground truth, robots 1-4 (see the module docstring).
+DATASET1_CALIBRATION = MrclamCalibration(
+    range_scale=1.0218,
+    range_offset_m=0.050,
+    forward_range=True,
+    odometry_delay_s=0.22,
+    velocity_scale=0.917,
+    omega_scale=0.945,
+)
+# The noise of the calibrated values, fitted on Dataset 1 (module docstring); field paths
+# of the localizer configs (slam.*Config), applied where a config has the field.
+DATASET1_LOCALIZER_SETTINGS = {
+    "range_sigma_m": 0.03,
+    "range_sigma_frac": 0.015,
+    "bearing_sigma_rad": 0.015,
+    "noise.velocity_frac": 0.13,
+    "noise.omega_frac": 0.23,
+    "noise.omega_floor": 0.011,
+}
 
 
 @dataclass(frozen=True)
 class MrclamOptions:
-    """robot: 1–5. groundtruth: "auto" | "exact" | "approximate" | "none"."""
+    """robot: 1–5. groundtruth: "auto" | "exact" | "approximate" | "none".
+    calibration: "dataset1" (the corrections fitted on Dataset 1, module docstring) |
+    "none" (the files' values)."""
 
     robot: int = 1
     groundtruth: str = "auto"
+    calibration: str = "dataset1"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "robot", as_int("robot", self.robot))
         check_choice("groundtruth", self.groundtruth, GROUNDTRUTH_CHOICES)
+        check_choice("calibration", self.calibration, CALIBRATIONS)
 
 
 def _odometry_stream(t: np.ndarray, v: np.ndarray, w: np.ndarray):
@@ -216,6 +288,14 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
     else:
         groundtruth["note"] = "no ground truth for this robot in this folder"
 
+    cal = DATASET1_CALIBRATION if options.calibration == "dataset1" else MrclamCalibration()
+    odo = odo.copy()
+    odo[:, 0] += cal.odometry_delay_s
+    odo[:, 1] *= cal.velocity_scale
+    odo[:, 2] *= cal.omega_scale
+    rb_range = rb[:, 2]
+    if cal.forward_range:
+        rb_range = (rb_range - cal.range_offset_m) / (cal.range_scale * np.cos(rb[:, 3]))
     t_odo0 = float(odo[0, 0])
     if gt_t is not None:
         initial = interpolate_pose(gt_t, gt_p, t_odo0)
@@ -227,7 +307,7 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
     }
     if gt_t is not None:
         streams[GroundTruthPose] = groundtruth_stream(gt_t, gt_p)
-    streams[RangeBearing] = _range_bearing_stream(rb[:, 0], rb_ids, rb[:, 2], rb[:, 3])
+    streams[RangeBearing] = _range_bearing_stream(rb[:, 0], rb_ids, rb_range, rb[:, 3])
 
     counts = {
         "VelocityOdometry": len(odo),
@@ -253,7 +333,10 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
                 "monocular camera, 15 barcoded landmarks, Vicon ground truth"
             ),
             "robot": robot,
-            "time_base": "Unix epoch seconds, as in the files (not offset)",
+            "time_base": (
+                "Unix epoch seconds, as in the files; odometry + "
+                f"{cal.odometry_delay_s} s (sensor_calibration)"
+            ),
             "t_first": float(min(times)),
             "t_last": float(max(times)),
             "counts": counts,
@@ -271,7 +354,20 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
         },
         "skipped": skipped,
         "groundtruth": groundtruth,
+        "sensor_calibration": {
+            "name": options.calibration,
+            **asdict(cal),
+            "note": (
+                "recorded range z = range_scale*r*cos(bearing) + range_offset_m, converted "
+                "to r; odometry times + odometry_delay_s, v * velocity_scale, "
+                "omega * omega_scale (hardware/datasets/mrclam.py)"
+                if options.calibration != "none"
+                else "the files' values, uncorrected"
+            ),
+        },
     }
+    if options.calibration == "dataset1":
+        metadata["localizer_settings"] = dict(DATASET1_LOCALIZER_SETTINGS)
     calibration = WalkerCalibration(
         track_m=CREATE_TRACK_M,
         frame_width_m=CREATE_DIAMETER_M,

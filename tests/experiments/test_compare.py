@@ -111,3 +111,45 @@ def test_set_changes_a_nested_localizer_field_in_compare_and_replay(two_logs, tm
     assert replay_config["localizer_config"]["noise"]["wheel_m"] == 0.01
     res = CliRunner().invoke(app, [*args, "--set", "ekf-slam.noise.bogus=1"])
     assert res.exit_code == 2 and "no field 'bogus'" in res.output
+
+
+def test_settings_a_dataset_proposes_come_before_set_and_dataset_options_reach_it(tmp_path):
+    """MRCLAM's importer proposes its fitted noise levels (metadata "localizer_settings"):
+    compare and replay apply them to the fields a localizer has, then --set on top;
+    `--dataset-option calibration=none` gives the files' values and no proposals."""
+    from typer.testing import CliRunner
+
+    from experiments.cli import app
+    from hardware.datasets.mrclam import DATASET1_LOCALIZER_SETTINGS as PROPOSED
+    from tests.hardware.datasets.datasets_testdata import write_mrclam
+
+    folder = write_mrclam(tmp_path / "mrclam")
+    base = ["--format", "mrclam", "--robot", "1", "--localizers", "ekf-slam,dead-reckoning"]
+    out = tmp_path / "cmp"
+    args = ["compare", str(folder), *base, "--out", str(out)]
+    res = CliRunner().invoke(app, [*args, "--set", "ekf-slam.bearing_sigma_rad=0.02"])
+    assert res.exit_code == 0, res.output
+    db = sqlite3.connect(out / "results.db")
+    configs = {
+        loc: json.loads(cfg)["localizer_config"]
+        for loc, cfg in db.execute("SELECT localizer, config FROM runs")
+    }
+    ekf, dr = configs["ekf-slam"], configs["dead-reckoning"]
+    assert ekf["bearing_sigma_rad"] == 0.02  # --set wins
+    assert ekf["range_sigma_frac"] == PROPOSED["range_sigma_frac"]
+    assert (
+        ekf["noise"]["omega_floor"] == dr["noise"]["omega_floor"] == PROPOSED["noise.omega_floor"]
+    )
+    assert "bearing_sigma_rad" not in dr  # only the fields a localizer has
+    raw = tmp_path / "raw"
+    replay = ["replay", str(folder), "--format", "mrclam", "--robot", "1", "--out", str(raw)]
+    res = CliRunner().invoke(
+        app, [*replay, "--localizer", "ekf-slam", "--dataset-option", "calibration=none"]
+    )
+    assert res.exit_code == 0, res.output
+    config = json.loads((raw / "config.json").read_text())
+    assert config["source_localizer_settings"] == {}
+    assert config["recorded_config"]["calibration"] == "none"
+    assert config["localizer_config"]["bearing_sigma_rad"] == 0.03  # the default
+    res = CliRunner().invoke(app, [*args, "--dataset-option", "calibration"])
+    assert res.exit_code == 2 and "NAME=VALUE" in res.output

@@ -398,3 +398,56 @@ def test_landmark_arrays_grow_and_range_bearing_needs_no_yaw_only_in_range_beari
     tp = create("fastslam", cal, FastSlamConfig(observation="tag-pose"))
     tp.process(RangeBearing(0.1, 3, 1.0, 0.0))
     assert tp.diagnostics()["without_yaw"] == 1 and not tp.landmarks()
+
+
+def test_same_time_observations_in_separate_messages_share_one_proposal():
+    """MRCLAM gives every landmark of an image its own RangeBearing message, all with the
+    image's timestamp: they are held and folded into one FastSLAM 2.0 proposal and one
+    pose sample, exactly as the same landmarks in one TagDetections frame."""
+    cal = WalkerCalibration()
+    optical_T_walker = invert_transform(cal.tag_mount.walker_T_optical())
+    tags = {4: np.array([3.0, 1.0]), 9: np.array([2.5, -1.5])}  # world positions
+    ticks = [EncoderTicks(0.02 * k, 8 * k, 9 * k) for k in range(60)]
+    dr = create("dead-reckoning", cal)
+    poses = {}
+    for k, m in enumerate(ticks):
+        dr.process(m)
+        poses[k] = dr.estimate().pose
+
+    def seen_from(k: int) -> dict[int, tuple[float, float]]:
+        x, y, th = poses[k]
+        c, s_ = math.cos(th), math.sin(th)
+        return {
+            i: (c * (u - x) + s_ * (v - y) + 0.01, -s_ * (u - x) + c * (v - y))
+            for i, (u, v) in tags.items()
+        }
+
+    def frame(k: int) -> list:
+        dets = tuple(
+            TagDetection(
+                i, optical_T_walker @ make_transform(np.eye(3), (x, y, 0.3)), np.zeros((4, 2))
+            )
+            for i, (x, y) in seen_from(k).items()
+        )
+        return [TagDetections(ticks[k].t, dets)]
+
+    def single(k: int) -> list:
+        return [
+            RangeBearing(ticks[k].t, i, math.hypot(x, y), math.atan2(y, x))
+            for i, (x, y) in seen_from(k).items()
+        ]
+
+    def run(observations) -> object:
+        fs = create("fastslam", cal, FastSlamConfig(n_particles=50, seed=4))
+        for k, m in enumerate(ticks):
+            fs.process(m)
+            if k in (25, 50):  # the same two tags, twice
+                for o in observations(k):
+                    fs.process(o)
+        return fs
+
+    a, b = run(frame), run(single)
+    assert np.allclose(a.poses, b.poses, atol=1e-9)
+    assert np.allclose(a.log_weights, b.log_weights, atol=1e-9)
+    assert a.diagnostics()["updates"] == b.diagnostics()["updates"] == 2
+    assert b.diagnostics()["new_landmarks"] == 2

@@ -102,7 +102,8 @@ def test_without_observations_it_follows_odometry_and_says_so():
     # Low noise, so that the cloud stays nearly Gaussian: then its mean is the odometry's
     # pose and its spread the odometry's covariance, up to sampling error.
     noise = MotionNoise(wheel_m=1e-4)
-    pf = create("particle-filter", CAL, ParticleFilterConfig(noise=noise))
+    filtered = ParticleFilterConfig(noise=noise, smoother="none")
+    pf = create("particle-filter", CAL, filtered)
     dr = create("dead-reckoning", CAL, DeadReckoningConfig(noise=noise))
     for m in arc_ticks(100, left=10, right=12):
         pf.process(m)
@@ -153,8 +154,12 @@ def test_resamples_when_the_weights_degenerate():
     # at the true pose (0, 0, 0) both landmarks are 3 m away, ahead and to the left
     pf.process(RangeBearing(0.0, 1, 3.0, 0.0))
     pf.process(RangeBearing(0.0, 2, 3.0, math.pi / 2))
+    # both observations of t = 0 are weighted in before the particles are resampled once,
+    # when the next message moves them
+    assert pf.diagnostics()["resamples"] == 0
+    pf.process(EncoderTicks(0.02, 0, 0))
     d = pf.diagnostics()
-    assert d["resamples"] >= 1
+    assert d["resamples"] == 1
     assert d["n_eff_min"] < cfg.resample_threshold * cfg.n_particles
     assert pf.n_eff == pytest.approx(400)  # resampled: equal weights again
     assert np.all(pf.particles[:, :2].std(axis=0) < 0.5 * spread)
@@ -167,6 +172,72 @@ def test_no_resampling_while_the_weights_stay_even():
     pf.process(RangeBearing(0.0, 1, 3.1, 0.0))  # all particles alike: every weight the same
     assert pf.diagnostics()["resamples"] == 0
     assert pf.n_eff == pytest.approx(100)
+
+
+def _straight_drive_with_biased_odometry(cfg: ParticleFilterConfig) -> ParticleFilter:
+    """The walker drives 4 m straight along +x in 4 s while its ticks say it curves left
+    (right wheel 10 % long); a landmark map of two tags is seen only in the last second,
+    from the true poses."""
+    pf = ParticleFilter(cfg, CAL)
+    m = CAL.metres_per_count
+    for k in range(201):
+        t = 0.02 * k
+        x = 1.0 * t  # true pose (x, 0, 0)
+        pf.process(EncoderTicks(t, round(0.02 * k / m), round(0.022 * k / m)))
+        if t >= 3.0 and k % 5 == 0:
+            for lid, (u, v) in {1: (6.0, 1.0), 2: (6.0, -1.0)}.items():
+                pf.process(RangeBearing(t, lid, math.hypot(u - x, v), math.atan2(v, u - x)))
+    return pf
+
+
+@pytest.mark.parametrize("smoother", ["rts", "ancestry"])
+def test_smoothed_trajectory_corrects_the_stretch_before_the_observations(smoother):
+    """Smoothing (RTS over the filtered moments, or the particles' ancestry) lets the
+    observations of the last second also pull the path that led there back to the truth
+    (y = 0), which the filtered means, fixed when they were recorded, cannot; the
+    smoother revises the past."""
+    lm = {1: (6.0, 1.0), 2: (6.0, -1.0)}
+    noise = MotionNoise(wheel_m=0.01)
+    common = {"n_particles": 500, "landmark_map": lm, "noise": noise, "seed": 3}
+    smooth = _straight_drive_with_biased_odometry(ParticleFilterConfig(**common, smoother=smoother))
+    filtered = _straight_drive_with_biased_odometry(ParticleFilterConfig(**common, smoother="none"))
+    assert smooth.revises_past and not filtered.revises_past
+    assert smooth.revision > 0
+    t_mid = np.array([1.5, 2.0, 2.5])
+    lateral_smooth = np.abs(smooth.trajectory().interpolate(t_mid)[:, 1])
+    lateral_filtered = np.abs(filtered.trajectory().interpolate(t_mid)[:, 1])
+    # measured (seeds 0-3): rts 0.03-0.08 m, ancestry 0.01-0.09 m, filtered 0.17-0.50 m
+    assert np.all(lateral_smooth < 0.6 * lateral_filtered), (lateral_smooth, lateral_filtered)
+    assert np.hypot(*smooth.trajectory().poses[-1, :2] - (4.0, 0.0)) < 0.1
+    with pytest.raises(ValueError, match="smoother"):
+        ParticleFilterConfig(smoother="fixed-lag")
+
+
+def test_an_outlier_does_not_wipe_out_the_right_particles():
+    """Robust landmark likelihood: among correct observations of two tags, one with a
+    wrong ID (π off in bearing, as MRCLAM's misread barcodes) leaves the estimate at the
+    truth; with the plain Gaussian (outlier_prob 0) it drags the cloud away."""
+    lm = {1: (3.0, 0.0), 2: (0.0, 3.0), 3: (-3.0, 0.0)}
+
+    def run(eps: float) -> np.ndarray:
+        cfg = ParticleFilterConfig(
+            n_particles=1000, initial_sigma=(0.3, 0.3, 0.1), landmark_map=lm, seed=2,
+            outlier_prob=eps,
+        )  # fmt: skip
+        pf = ParticleFilter(cfg, CAL)
+        pf.process(EncoderTicks(0.0, 0, 0))
+        for k in range(3):  # the truth is (0, 0, 0)
+            pf.process(RangeBearing(0.1 * k, 1, 3.0, 0.0))
+            pf.process(RangeBearing(0.1 * k, 2, 3.0, math.pi / 2))
+        pf.process(RangeBearing(0.3, 3, 1.5, 0.0))  # tag 3 is 3 m behind, not 1.5 m ahead
+        pf.process(EncoderTicks(0.4, 0, 0))
+        return pf.estimate().pose
+
+    robust, plain = run(0.01), run(0.0)
+    assert np.hypot(*robust[:2]) < 0.05 and abs(robust[2]) < 0.02
+    assert np.hypot(*plain[:2]) > 3 * np.hypot(*robust[:2])
+    with pytest.raises(ValueError, match="outlier_prob"):
+        ParticleFilterConfig(outlier_prob=1.0)
 
 
 def _box_room_scan(pose, t, room=(-2.0, 4.0, -2.5, 3.0), n=180, range_max=8.0) -> LaserScan:
@@ -236,8 +307,8 @@ def _replay(log, config=None, landmark_map=None):
 
 @pytest.mark.slow
 def test_known_tag_map_beats_dead_reckoning(course_trial):
-    """At the defaults (500 particles). Measured: aligned ATE 0.019 m (unaligned 0.020 m)
-    against dead reckoning's 0.373 m (0.383 m); 0.022 m on the same course with seed 3."""
+    """At the defaults (500 particles, RTS-smoothed path). Measured: aligned ATE 0.018 m
+    (unaligned 0.019 m; the filtered means: 0.014 m) against dead reckoning's 0.558 m."""
     lm = landmarks.from_metadata(read_log(course_trial).metadata)
     pf, dr, gt, _ = _replay(course_trial, landmark_map=lm)
     e_pf, e_dr = ate(pf.trajectory(), gt), ate(dr.trajectory(), gt)

@@ -21,7 +21,7 @@ from slam.trajectory import Trajectory
 
 @pytest.mark.parametrize("gz", [False, True])
 def test_synthetic_folder(tmp_path, gz):
-    ds = open_dataset("mrclam", write_mrclam(tmp_path, gz=gz), robot=1)
+    ds = open_dataset("mrclam", write_mrclam(tmp_path, gz=gz), robot=1, calibration="none")
     msgs = list(ds.messages())
     odo = [m for m in msgs if isinstance(m, VelocityOdometry)]
     rb = [m for m in msgs if isinstance(m, RangeBearing)]
@@ -56,6 +56,36 @@ def test_synthetic_folder(tmp_path, gz):
     assert ds.calibration.track_m == pytest.approx(0.258)
     # time order: at 1001.0 both odometry rows, then nothing else
     assert [m.t for m in msgs] == sorted(m.t for m in msgs)
+
+
+def test_dataset1_calibration_converts_range_and_odometry(tmp_path):
+    """The default calibration: the recorded range is the forward distance
+    z = k·r·cos(b) + c, odometry takes effect `odometry_delay_s` later and is scaled; the
+    metadata records it and proposes the fitted noise levels to the localizers."""
+    from hardware.datasets.mrclam import DATASET1_CALIBRATION as C
+    from hardware.datasets.mrclam import DATASET1_LOCALIZER_SETTINGS
+
+    folder = write_mrclam(tmp_path)
+    raw = open_dataset("mrclam", folder, robot=1, calibration="none")
+    cal = open_dataset("mrclam", folder, robot=1)
+    assert cal.metadata["config"]["calibration"] == "dataset1"
+    assert cal.metadata["sensor_calibration"]["odometry_delay_s"] == C.odometry_delay_s
+    assert cal.metadata["localizer_settings"] == DATASET1_LOCALIZER_SETTINGS
+    assert "localizer_settings" not in raw.metadata
+    assert raw.metadata["sensor_calibration"]["name"] == "none"
+    for a, b in zip(raw.messages([RangeBearing]), cal.messages([RangeBearing]), strict=True):
+        assert (b.t, b.landmark_id, b.bearing_rad) == (a.t, a.landmark_id, a.bearing_rad)
+        forward = C.range_scale * b.range_m * math.cos(b.bearing_rad) + C.range_offset_m
+        assert forward == pytest.approx(a.range_m, abs=1e-12)
+    odo_raw = list(raw.messages([VelocityOdometry]))
+    odo = list(cal.messages([VelocityOdometry]))
+    assert [m.t for m in odo] == pytest.approx([m.t + C.odometry_delay_s for m in odo_raw])
+    assert [m.v for m in odo] == pytest.approx([m.v * C.velocity_scale for m in odo_raw])
+    assert [m.omega for m in odo] == pytest.approx([m.omega * C.omega_scale for m in odo_raw])
+    # the start pose is the ground truth at the (delayed) first odometry time
+    assert cal.metadata["config"]["initial_pose_t"] == pytest.approx(1000.0 + C.odometry_delay_s)
+    with pytest.raises(DatasetError, match="calibration must be one of dataset1, none"):
+        open_dataset("mrclam", folder, robot=1, calibration="ds7")
 
 
 def test_unknown_robot_number_lists_the_valid_ones(tmp_path):
@@ -116,7 +146,7 @@ def test_groundtruth_options(tmp_path):
 
 @pytest.fixture(scope="module")
 def ds7_robot1():
-    return open_dataset("mrclam", data_dir("mrclam_dataset7"), robot=1)
+    return open_dataset("mrclam", data_dir("mrclam_dataset7"), robot=1, calibration="none")
 
 
 @pytest.mark.data
@@ -226,3 +256,40 @@ def test_dataset7_robot1_full_import(tmp_path, ds7_robot1):
     assert trial.metadata["config"]["initial_pose"] == list(ds7_robot1.initial_pose)
     assert len(trial.metadata["landmarks"]) == 15
     assert_same_messages(list(trial.messages()), list(ds7_robot1.messages()))
+
+
+def _range_and_turn_errors(ds) -> tuple[float, float]:
+    """rms of range − true range [m] (bearing within 0.15 rad of the truth: right ID),
+    and of the odometry's heading change over 0.5 s windows − the true one [rad]."""
+    gt = list(ds.messages([GroundTruthPose]))
+    t = np.array([m.t for m in gt])
+    truth = Trajectory(t, np.array([(m.x, m.y, m.theta) for m in gt]))
+    rb = [m for m in ds.messages([RangeBearing]) if t[0] <= m.t <= t[-1]]
+    p = truth.interpolate(np.array([m.t for m in rb]))
+    lm = np.array([ds.metadata["landmarks"][str(m.landmark_id)] for m in rb])
+    d = lm - p[:, :2]
+    bearing = np.array([m.bearing_rad for m in rb])
+    brg = np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0]) - p[:, 2] - bearing)))
+    rng = np.hypot(d[:, 0], d[:, 1]) - np.array([m.range_m for m in rb])
+    range_rms = float(np.sqrt(np.mean(rng[np.abs(brg) < 0.15] ** 2)))
+    odo = np.array([(m.t, m.omega) for m in ds.messages([VelocityOdometry])])
+    heading = np.r_[0.0, np.cumsum(odo[:-1, 1] * np.diff(odo[:, 0]))]
+    grid = np.arange(max(odo[0, 0], t[0]) + 1.0, min(odo[-1, 0], t[-1]) - 1.0, 0.5)
+    d_odo = np.diff(np.interp(grid, odo[:, 0], heading))
+    d_true = np.diff(np.interp(grid, t, np.unwrap(truth.poses[:, 2])))
+    return range_rms, float(np.sqrt(np.mean((d_odo - d_true) ** 2)))
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("robot", [1, 4])
+def test_dataset1_calibration_fits_dataset7(robot):
+    """The calibration fitted on Dataset 1, held out on Dataset 7: the converted ranges
+    and the delayed, scaled odometry agree much better with the Vicon. Measured, robot
+    1 / 4: range rms 0.125 → 0.040 / 0.213 → 0.063 m; heading change over 0.5 s rms
+    0.038 → 0.021 / 0.036 → 0.017 rad (robots 1-5: range 0.12-0.21 → 0.04-0.08 m,
+    heading 0.032-0.052 → 0.017-0.027 rad)."""
+    folder = data_dir("mrclam_dataset7")
+    raw = _range_and_turn_errors(open_dataset("mrclam", folder, robot=robot, calibration="none"))
+    cal = _range_and_turn_errors(open_dataset("mrclam", folder, robot=robot))
+    assert cal[0] < 0.4 * raw[0] and cal[0] < 0.08
+    assert cal[1] < 0.7 * raw[1]
