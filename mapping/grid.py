@@ -5,6 +5,9 @@ Two map models share one extent mechanism (`GridExtent`):
 - `OccupancyGrid` (model "log-odds"): each frame adds l_occ to the cells holding
   obstacle points and l_free to the cells its rays crossed (sensor to end, end cell
   excluded when it holds an obstacle), each cell at most once per frame, clamped.
+- `HitCentroidGrid` (model "log-odds-hits"): the log-odds grid that also keeps, per
+  cell, the mean of the obstacle points it held (GMapping's cell model), which places a
+  surface within its cell for a scan matcher (slam.grid_rbpf).
 - `ViewCountGrid` (model "view-count", thesis §4.1): per cell, the number of frames in
   which it was in view and the number in which it held obstacle points; occupied when
   hits / views > 0.5. "In view" is the sensor's view wedge when the observation has one
@@ -40,7 +43,13 @@ from typing import ClassVar
 
 import numpy as np
 
-from mapping.kernels import floor_bounds, mark_cells, mark_end_rays, update_log_odds
+from mapping.kernels import (
+    accumulate_hits,
+    floor_bounds,
+    mark_cells,
+    mark_end_rays,
+    update_log_odds,
+)
 from mapping.lattice import as_points, cell_centres, cells_of
 from mapping.observation import ViewWedge, WorldObservation
 from slam.geometry import wrap_angle
@@ -49,6 +58,7 @@ from slam.geometry import wrap_angle
 class MapModel(StrEnum):
     LOG_ODDS = "log-odds"
     VIEW_COUNT = "view-count"
+    LOG_ODDS_HITS = "log-odds-hits"
 
 
 @dataclass(frozen=True)
@@ -159,6 +169,10 @@ class GridExtent(ABC):
         return cell_centres(
             as_points(np.atleast_2d(cells), "cells") + self._offset, self.resolution
         )
+
+    def layer(self, name: str) -> np.ndarray:
+        """The (ny, nx) layer `name` (one of LAYERS; read it, do not write it)."""
+        return self._layers[name]
 
     # --- what the map says --------------------------------------------------------------
     @abstractmethod
@@ -428,6 +442,35 @@ class OccupancyGrid(GridExtent):
         update_log_odds(layers["log_odds"], frame.occupied, frame.rays(), *args)
 
 
+class HitCentroidGrid(OccupancyGrid):
+    """Log-odds grid plus, per cell, the obstacle points it held: float32 layers "hit_x",
+    "hit_y" (sums of the points' offsets from the cell's centre [m]) and "hits" (their
+    count); `hit_centroids()` gives their mean. Occupancy is the log-odds grid's."""
+
+    LAYERS: ClassVar[dict[str, type]] = {
+        "log_odds": np.float32,
+        "hit_x": np.float32,
+        "hit_y": np.float32,
+        "hits": np.float32,
+    }
+
+    def _update(self, layers: dict[str, np.ndarray], frame: _Frame) -> None:
+        super()._update(layers, frame)
+        accumulate_hits(
+            frame.obs.obstacles,
+            self.resolution,
+            frame.window.as_kernel_box,
+            layers["hit_x"],
+            layers["hit_y"],
+            layers["hits"],
+        )
+
+    def hit_centroids(self) -> np.ndarray:
+        """(ny, nx, 2) mean offset of each cell's points from its centre (0 where none)."""
+        n = np.maximum(self._layers["hits"], 1.0)
+        return np.stack([self._layers["hit_x"] / n, self._layers["hit_y"] / n], axis=-1)
+
+
 class ViewCountGrid(GridExtent):
     """The thesis's counting model: uint32 layers "views" and "hits" per cell."""
 
@@ -485,4 +528,9 @@ def _arc_offsets(half_fov: float) -> np.ndarray:
 def make_grid(config: GridConfig | None = None) -> GridExtent:
     """The grid class of config.model."""
     cfg = config or GridConfig()
-    return {MapModel.LOG_ODDS: OccupancyGrid, MapModel.VIEW_COUNT: ViewCountGrid}[cfg.model](cfg)
+    classes = {
+        MapModel.LOG_ODDS: OccupancyGrid,
+        MapModel.VIEW_COUNT: ViewCountGrid,
+        MapModel.LOG_ODDS_HITS: HitCentroidGrid,
+    }
+    return classes[cfg.model](cfg)

@@ -287,3 +287,28 @@ def mark_end_rays(
         steps[q] = max(math.ceil(2.0 * math.hypot(cx[q], cy[q])), 1)
     mark_ray_samples(ox / resolution, oy / resolution, cx, cy, steps, box, marks)
     return len(pick)
+
+
+@njit(cache=True, nogil=True)
+def accumulate_hits(
+    points: np.ndarray,
+    resolution: float,
+    box: tuple[int, int, int, int],
+    hit_x: np.ndarray,
+    hit_y: np.ndarray,
+    hits: np.ndarray,
+) -> None:
+    """Add each world point (N×2) to its cell ⌊p/resolution⌋ of the (height, width)
+    layers covering `box` = (i0, j0, width, height): its offset from the cell's centre to
+    hit_x, hit_y and 1 to hits (float32). Points outside the box are skipped (a grid that
+    rolled holds only part of a frame)."""
+    i0, j0, width, height = box
+    for k in range(points.shape[0]):
+        x, y = points[k, 0], points[k, 1]
+        i = math.floor(x / resolution)
+        j = math.floor(y / resolution)
+        c, r = i - i0, j - j0
+        if 0 <= c < width and 0 <= r < height:
+            hit_x[r, c] += x - (i + 0.5) * resolution
+            hit_y[r, c] += y - (j + 0.5) * resolution
+            hits[r, c] += 1.0

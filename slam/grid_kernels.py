@@ -6,11 +6,15 @@ over the frame's points instead of a likelihood field (a distance transform per 
 frame would cost more than the whole update). It is the endpoint model of GMapping
 (Grisetti et al. 2007): each point, placed at the pose, looks for the occupied cell
 nearest to it within ± `kernel` cells of its own cell; at distance d (point to cell
-centre) it scores log(z_hit·exp(−d²/2σ²) + z_rand), and log(z_rand) when there is none.
-A cell is occupied when its log-odds exceed `occupied_log_odds`.
+centre, or to the mean of the points the cell was mapped from when the grid keeps them:
+mapping.grid.HitCentroidGrid, GMapping's cell model) it scores
+log(z_hit·exp(−d²/2σ²) + z_rand), and log(z_rand) when there is none. A cell is occupied
+when its log-odds exceed `occupied_log_odds`.
 
-Grids are the log-odds arrays of mapping.grid.OccupancyGrid: [iy, ix], cell (i, j) of
-the world lattice at [j − j0, i − i0], cell side `resolution`.
+A grid is passed as `grid` = (log_odds, hit_x, hit_y, hits, i0, j0, resolution,
+occupied_log_odds): the layers of mapping.grid.OccupancyGrid / HitCentroidGrid, indexed
+[iy, ix] with cell (i, j) of the world lattice at [j − j0, i − i0]; hits has shape (0, 0)
+for a grid without hit centroids.
 """
 
 from __future__ import annotations
@@ -23,11 +27,7 @@ from numba import njit
 
 @njit(cache=True, nogil=True)
 def point_log_likelihood(
-    log_odds: np.ndarray,
-    i0: int,
-    j0: int,
-    resolution: float,
-    occupied_log_odds: float,
+    grid: tuple,
     x: float,
     y: float,
     kernel: int,
@@ -36,6 +36,8 @@ def point_log_likelihood(
     z_rand: float,
 ) -> tuple[float, bool]:
     """(log-likelihood, matched) of one world point (module docstring)."""
+    log_odds, hit_x, hit_y, hits, i0, j0, resolution, occupied_log_odds = grid
+    centroids = hits.shape[0] > 0
     ny, nx = log_odds.shape
     ci = math.floor(x / resolution)
     cj = math.floor(y / resolution)
@@ -50,6 +52,9 @@ def point_log_likelihood(
                 continue
             dx = (i + 0.5) * resolution - x
             dy = (j + 0.5) * resolution - y
+            if centroids and hits[r, c] > 0:
+                dx += hit_x[r, c] / hits[r, c]
+                dy += hit_y[r, c] / hits[r, c]
             best = min(best, dx * dx + dy * dy)
     if best == math.inf:
         return math.log(z_rand), False
@@ -58,11 +63,7 @@ def point_log_likelihood(
 
 @njit(cache=True, nogil=True)
 def frame_log_likelihood(
-    log_odds: np.ndarray,
-    i0: int,
-    j0: int,
-    resolution: float,
-    occupied_log_odds: float,
+    grid: tuple,
     points: np.ndarray,
     pose: np.ndarray,
     kernel: int,
@@ -78,11 +79,7 @@ def frame_log_likelihood(
     for k in range(points.shape[0]):
         px, py = points[k, 0], points[k, 1]
         ll, ok = point_log_likelihood(
-            log_odds,
-            i0,
-            j0,
-            resolution,
-            occupied_log_odds,
+            grid,
             pose[0] + c * px - s * py,
             pose[1] + s * px + c * py,
             kernel,
@@ -97,11 +94,7 @@ def frame_log_likelihood(
 
 @njit(cache=True, nogil=True)
 def poses_log_likelihood(
-    log_odds: np.ndarray,
-    i0: int,
-    j0: int,
-    resolution: float,
-    occupied_log_odds: float,
+    grid: tuple,
     points: np.ndarray,
     poses: np.ndarray,
     kernel: int,
@@ -113,11 +106,7 @@ def poses_log_likelihood(
     out = np.empty(poses.shape[0])
     for m in range(poses.shape[0]):
         out[m] = frame_log_likelihood(
-            log_odds,
-            i0,
-            j0,
-            resolution,
-            occupied_log_odds,
+            grid,
             points,
             poses[m],
             kernel,
@@ -130,11 +119,7 @@ def poses_log_likelihood(
 
 @njit(cache=True, nogil=True)
 def hill_climb(
-    log_odds: np.ndarray,
-    i0: int,
-    j0: int,
-    resolution: float,
-    occupied_log_odds: float,
+    grid: tuple,
     points: np.ndarray,
     start: np.ndarray,
     step_xy: float,
@@ -151,11 +136,7 @@ def hill_climb(
     most `refinements` times. Returns (pose, Σ log-likelihood, matched points)."""
     pose = start.copy()
     best, matched = frame_log_likelihood(
-        log_odds,
-        i0,
-        j0,
-        resolution,
-        occupied_log_odds,
+        grid,
         points,
         pose,
         kernel,
@@ -190,11 +171,7 @@ def hill_climb(
             else:
                 trial[2] -= step_theta
             score, m = frame_log_likelihood(
-                log_odds,
-                i0,
-                j0,
-                resolution,
-                occupied_log_odds,
+                grid,
                 points,
                 trial,
                 kernel,

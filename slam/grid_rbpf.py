@@ -46,7 +46,7 @@ import numpy as np
 from hardware.calibration import WalkerCalibration
 from hardware.messages import DepthFrame, LaserScan
 from mapping.depth_points import project_depth_frame
-from mapping.grid import GridExtent, OccupancyGrid, make_grid
+from mapping.grid import GridExtent, HitCentroidGrid, make_grid
 from mapping.mapper import MapperConfig
 from mapping.scan_points import scan_to_observation
 from slam.base import PoseEstimate
@@ -70,7 +70,9 @@ class GridRbpf(ParticleFilter):
         self.revises_past = True  # the best particle's path (the base's smoothers unused)
         self._maps: list[GridExtent] = []
         self._map_config = MapperConfig()
-        self.paths = ParticlePaths(config.path_snapshot_s)
+        # the particles' poses at every odometry message and frame (a frame's correction is
+        # spread over the odometry messages before it)
+        self.paths = ParticlePaths(0.0)
         # every frame's per-particle corrections, read back through resampling like the
         # paths, and the odometry variance (x+y, θ) accumulated at each odometry message
         # since the last frame, with each frame's total
@@ -89,9 +91,8 @@ class GridRbpf(ParticleFilter):
         cfg = getattr(source, "config", None)
         if isinstance(cfg, MapperConfig):
             self._map_config = cfg
-        grid_cfg = self._map_config.grid
-        if grid_cfg.model != "log-odds":
-            grid_cfg = replace(grid_cfg, model="log-odds")  # the score reads log-odds
+        # the score reads log-odds and the cells' hit centroids
+        grid_cfg = replace(self._map_config.grid, model="log-odds-hits")
         self._map_config = replace(self._map_config, grid=grid_cfg)
         empty = make_grid(grid_cfg)
         self._maps = [empty] * len(self.particles)
@@ -102,12 +103,17 @@ class GridRbpf(ParticleFilter):
         self.corrections.resampled(parents)
 
     def _observation(self, msg: DepthFrame | LaserScan):
+        """(the frame as the maps integrate it: compacted as the mapper does, the frame
+        whose points are scored: a laser scan's own end points, a depth frame's compacted
+        ones)."""
         cfg = self._map_config
         q = cfg.point_quantum_m
         quantum = cfg.grid.resolution_m / 4.0 if q is None else q
         if isinstance(msg, DepthFrame):
-            return project_depth_frame(msg, self.calibration, cfg.depth, quantum=quantum)
-        return scan_to_observation(msg, (0.0, 0.0, 0.0), cfg.scan).compacted(quantum)
+            obs = project_depth_frame(msg, self.calibration, cfg.depth, quantum=quantum)
+            return obs, obs
+        raw = scan_to_observation(msg, (0.0, 0.0, 0.0), cfg.scan)
+        return raw.compacted(quantum), raw
 
     def _integrate(self, obs) -> None:
         """The frame into every particle's map at its pose, copying shared maps first."""
@@ -130,8 +136,8 @@ class GridRbpf(ParticleFilter):
             return
         if self._moved[0] < c.scan_every_m and self._moved[1] < c.scan_every_rad:
             return
-        obs = self._observation(msg)
-        points = self._scoring_points(obs)
+        obs, scored_obs = self._observation(msg)
+        points = self._scoring_points(scored_obs)
         prior = self._prior_cov()
         steps = np.array([c.match_fit_step_m, c.match_fit_step_m, c.match_fit_step_rad])
         log_volume = float(np.log(steps).sum()) - 1.5 * math.log(2.0 * math.pi)
@@ -193,12 +199,13 @@ class GridRbpf(ParticleFilter):
         return np.ascontiguousarray(pts)
 
     def _score_args(self, grid: GridExtent) -> tuple | None:
-        """The grid as the compiled score reads it; None while it is empty."""
-        if not isinstance(grid, OccupancyGrid) or grid.shape[0] == 0:
+        """The grid as the compiled score reads it (slam.grid_kernels); None while empty."""
+        if not isinstance(grid, HitCentroidGrid) or grid.shape[0] == 0:
             return None
         i0, j0 = grid.lattice_offset
         threshold = math.log(grid.OCCUPIED_THRESHOLD / (1.0 - grid.OCCUPIED_THRESHOLD))
-        return (grid.log_odds, i0, j0, grid.resolution, threshold)
+        layers = (grid.log_odds, *(grid.layer(n) for n in ("hit_x", "hit_y", "hits")))
+        return ((*layers, i0, j0, grid.resolution, threshold),)
 
     # -- outputs --------------------------------------------------------------------------
     def _best(self) -> int:

@@ -147,7 +147,7 @@ class ParticleFilterConfig:
         share ε of observations that are outliers, uniform over outlier_range_m of range
         and all bearings; 0 = the plain Gaussian.
     smoother: "rts" | "ancestry" | "none": what `trajectory()` is (module docstring);
-        path_snapshot_s: the ancestry's sampling interval (and the per-particle maps' paths').
+        path_snapshot_s: the ancestry's sampling interval.
     proposal: "motion" or "scan" (module docstring). For "scan": the coarse search
         covers the particles' prior (3σ of the accumulated odometry covariance, plus
         their spread) clipped to proposal_window_m (min, max half-width in x and y) and
