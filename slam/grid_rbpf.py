@@ -150,7 +150,7 @@ class GridRbpf(ParticleFilter):
                 new[i] = sample_gaussians(self.particles[i : i + 1], prior[i : i + 1], self.rng)[0]
                 continue
             scored = True
-            kernel = (c.match_kernel_cells, c.sigma_hit_m, c.z_hit, c.z_rand)
+            kernel = (c.match_kernel_cells, c.match_sigma_m, c.z_hit, c.z_rand)
             pose, _, matched = hill_climb(
                 *args,
                 points,
@@ -162,7 +162,7 @@ class GridRbpf(ParticleFilter):
             )
             if matched >= c.min_points:
                 fit = lattice(pose, (1, 1, 1), steps)
-                ll = c.beam_weight * poses_log_likelihood(*args, points, fit, *kernel)
+                ll = c.match_beam_weight * poses_log_likelihood(*args, points, fit, *kernel)
                 mu, cov, eta = gaussian_fit(
                     fit, ll, self.particles[i : i + 1], prior[i : i + 1], steps
                 )
@@ -172,7 +172,7 @@ class GridRbpf(ParticleFilter):
             else:
                 new[i] = sample_gaussians(self.particles[i : i + 1], prior[i : i + 1], self.rng)[0]
                 ll, _ = frame_log_likelihood(*args, points, new[i], *kernel)
-                log_eta[i] = c.beam_weight * ll
+                log_eta[i] = c.match_beam_weight * ll
                 self.counts["unmatched"] += 1
         correction = new - self.particles
         correction[:, 2] = wrap_angle(correction[:, 2])

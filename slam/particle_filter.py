@@ -160,14 +160,18 @@ class ParticleFilterConfig:
         Rao-Blackwellized filter, grid FastSLAM / GMapping: slam.grid_rbpf), with
         map_particles particles (n_particles is then not used), the "scan" proposal's
         odometry handling, and a hill-climbing scan match per particle and frame
-        against its map: match_kernel_cells (search ± cells around each point),
-        match_step_m / match_step_rad (first steps, halved match_refinements times),
-        match_fit_step_m / match_fit_step_rad (the lattice the proposal's Gaussian is
-        fitted on); its trajectory is the most probable particle's path (`smoother` is
-        not used); weight_gain: a frame's log-weights are divided by
-        it (GMapping's "ogain", 3 there): the proposal may follow a sharp likelihood
-        while the weights, which decide which particles (and maps) survive, are
-        smoothed, so that resampling does not deplete the particles at every frame.
+        against its map (slam.grid_kernels): a point scores against the hit centroid of
+        the nearest occupied cell within ± match_kernel_cells, a Gaussian of σ =
+        match_sigma_m (z_hit, z_rand as above), times match_beam_weight (they take the
+        place of sigma_hit_m and beam_weight); match_step_m / match_step_rad: first
+        steps, halved match_refinements times; match_fit_step_m / match_fit_step_rad: the
+        lattice the proposal's Gaussian is fitted on; weight_gain: a frame's log-weights
+        are divided by it (GMapping's "ogain"): the proposal follows the sharp
+        likelihood while the weights, which decide which particles (and maps) survive,
+        are smoothed, so that resampling does not deplete the particles at every frame.
+        Its trajectory is the most probable particle's path (`smoother` is not used).
+        The defaults were chosen on the Intel lab log (BENCHMARKS.md: 60 particles,
+        σ 0.03 m, gain 20; 30 particles fail a late loop on some seeds).
     """
 
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -206,14 +210,16 @@ class ParticleFilterConfig:
     proposal_fine_steps: int = 3
     proposal_sigma_floor: tuple[float, float, float] = (0.01, 0.01, 0.005)
     maps: str = "shared"
-    map_particles: int = 30
+    map_particles: int = 60
     match_kernel_cells: int = 1
+    match_sigma_m: float = 0.03
+    match_beam_weight: float = 1.0
     match_step_m: float = 0.05
     match_step_rad: float = 0.05
     match_refinements: int = 5
     match_fit_step_m: float = 0.02
     match_fit_step_rad: float = 0.01
-    weight_gain: float = 1.0
+    weight_gain: float = 20.0
 
     def __post_init__(self) -> None:
         if self.smoother not in SMOOTHERS:
@@ -228,6 +234,8 @@ class ParticleFilterConfig:
             raise ValueError("need map_particles >= 1, match_kernel_cells, refinements >= 0")
         if self.weight_gain < 1.0:
             raise ValueError(f"weight_gain must be >= 1, got {self.weight_gain}")
+        if self.match_sigma_m <= 0 or self.match_beam_weight <= 0:
+            raise ValueError("match_sigma_m and match_beam_weight must be > 0")
         if self.proposal not in ("motion", "scan"):
             raise ValueError(f"proposal must be 'motion' or 'scan', got {self.proposal!r}")
         if min(self.proposal_step_m, self.proposal_step_rad) <= 0 or self.proposal_fine_steps < 1:
