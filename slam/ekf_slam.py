@@ -18,6 +18,9 @@ from hardware.messages import Message
 from slam.base import Localizer, PoseEstimate, register
 from slam.geometry import wrap_angle
 from slam.measurement import (
+    BEARING_SIGMA_RAD,
+    RANGE_SIGMA_FRAC,
+    RANGE_SIGMA_M,
     LandmarkObservation,
     landmark_from_range_bearing,
     landmark_from_range_bearing_jacobians,
@@ -36,15 +39,15 @@ class EkfSlamConfig:
     initial_pose: (x, y, θ), known exactly (it defines the map frame).
     noise: odometry noise (slam.motion.MotionNoise).
     range_sigma_m + range_sigma_frac·r: range noise; bearing_sigma_rad: bearing noise
-    (defaults fit the simulated tag camera and MRCLAM's barcode camera).
+    (defaults: an AprilTag camera, slam.measurement.RANGE_SIGMA_M and the others).
     gate_chi2: Mahalanobis gate for an update (13.8 = 99.9 % for 2 DOF); inf disables.
     """
 
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
     noise: MotionNoise = field(default_factory=MotionNoise)
-    range_sigma_m: float = 0.05
-    range_sigma_frac: float = 0.02
-    bearing_sigma_rad: float = 0.03
+    range_sigma_m: float = RANGE_SIGMA_M
+    range_sigma_frac: float = RANGE_SIGMA_FRAC
+    bearing_sigma_rad: float = BEARING_SIGMA_RAD
     gate_chi2: float = 13.8
 
 

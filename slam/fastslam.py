@@ -75,6 +75,9 @@ from hardware.messages import Message
 from slam.base import Localizer, PoseEstimate, register
 from slam.geometry import wrap_angle
 from slam.measurement import (
+    BEARING_SIGMA_RAD,
+    RANGE_SIGMA_FRAC,
+    RANGE_SIGMA_M,
     LandmarkObservation,
     landmark_from_range_bearing,
     landmark_from_range_bearing_jacobians,
@@ -114,7 +117,7 @@ class FastSlamConfig:
     observation-informed proposal).
     noise: odometry noise (slam.motion.MotionNoise).
     range_sigma_m + range_sigma_frac·r: range noise; bearing_sigma_rad: bearing noise (as
-    EkfSlamConfig: defaults fit the simulated tag camera and MRCLAM's barcode camera).
+    EkfSlamConfig: defaults an AprilTag camera's, slam.measurement.RANGE_SIGMA_M...).
     observation: "range-bearing" uses (r, b) of every observation; "tag-pose" also uses the
     tag's yaw in the walker frame (TagDetections), each landmark then carries its yaw ψ;
     observations without a yaw (RangeBearing messages) are skipped and counted.
@@ -136,9 +139,9 @@ class FastSlamConfig:
     n_particles: int = 100
     version: int = 2
     noise: MotionNoise = field(default_factory=MotionNoise)
-    range_sigma_m: float = 0.05
-    range_sigma_frac: float = 0.02
-    bearing_sigma_rad: float = 0.03
+    range_sigma_m: float = RANGE_SIGMA_M
+    range_sigma_frac: float = RANGE_SIGMA_FRAC
+    bearing_sigma_rad: float = BEARING_SIGMA_RAD
     observation: str = "range-bearing"
     yaw_sigma_rad: float = 0.02
     yaw_sigma_per_m2: float = 0.03

@@ -75,7 +75,13 @@ from hardware.calibration import WalkerCalibration
 from hardware.messages import DepthFrame, LaserScan, Message
 from slam.base import Localizer, PoseEstimate, register
 from slam.geometry import compose
-from slam.measurement import LandmarkObservation, landmark_observation
+from slam.measurement import (
+    BEARING_SIGMA_RAD,
+    RANGE_SIGMA_FRAC,
+    RANGE_SIGMA_M,
+    LandmarkObservation,
+    landmark_observation,
+)
 from slam.motion import MotionNoise, OdometryModel, apply_increment, increment_jacobians
 from slam.scan_matching import (
     MatchResult,
@@ -123,9 +129,9 @@ class GtsamConfig:
     keyframe_angle_rad: float = 0.2
     keyframe_time_s: float = 1.0
     obs_keyframe_dt_s: float = 0.2
-    range_sigma_m: float = 0.05
-    range_sigma_frac: float = 0.02
-    bearing_sigma_rad: float = 0.03
+    range_sigma_m: float = RANGE_SIGMA_M
+    range_sigma_frac: float = RANGE_SIGMA_FRAC
+    bearing_sigma_rad: float = BEARING_SIGMA_RAD
     huber_k: float = 1.345
     relinearize_threshold: float = 0.01
     odometry_sigma_floor: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)

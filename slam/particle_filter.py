@@ -79,6 +79,9 @@ from mapping.scan_points import ScanConfig, scan_to_observation
 from slam.base import Localizer, PoseEstimate, register
 from slam.geometry import wrap_angle
 from slam.measurement import (
+    BEARING_SIGMA_RAD,
+    RANGE_SIGMA_FRAC,
+    RANGE_SIGMA_M,
     LandmarkObservation,
     landmark_observation,
     range_bearing,
@@ -114,7 +117,7 @@ class ParticleFilterConfig:
     n_particles: number of particles.
     noise: odometry noise the particles are drawn with (slam.motion.MotionNoise).
     range_sigma_m + range_sigma_frac·r, bearing_sigma_rad: landmark range-bearing noise
-        (as EkfSlamConfig: they fit the simulated tag camera and MRCLAM's barcodes).
+        (as EkfSlamConfig: an AprilTag camera's, slam.measurement.RANGE_SIGMA_M...).
     landmark_map: known landmarks {id: (x, y)}; filled from the trial log by
         `slam.base.create(..., landmark_map=...)`; None: landmarks are not used.
     use_scans: weight by depth frames / laser scans against the attached occupancy map
@@ -178,9 +181,9 @@ class ParticleFilterConfig:
     initial_sigma: tuple[float, float, float] = (0.0, 0.0, 0.0)
     n_particles: int = 500
     noise: MotionNoise = field(default_factory=MotionNoise)
-    range_sigma_m: float = 0.05
-    range_sigma_frac: float = 0.02
-    bearing_sigma_rad: float = 0.03
+    range_sigma_m: float = RANGE_SIGMA_M
+    range_sigma_frac: float = RANGE_SIGMA_FRAC
+    bearing_sigma_rad: float = BEARING_SIGMA_RAD
     landmark_map: dict[int, np.ndarray] | None = None
     use_scans: bool = False
     sigma_hit_m: float = 0.1

@@ -9,6 +9,7 @@ import pytest
 
 from experiments.compare import COLUMNS, compare, is_stochastic, parse_localizers
 from experiments.run import simulate_trial
+from slam.measurement import BEARING_SIGMA_RAD
 
 
 @pytest.fixture(scope="module")
@@ -150,6 +151,6 @@ def test_settings_a_dataset_proposes_come_before_set_and_dataset_options_reach_i
     config = json.loads((raw / "config.json").read_text())
     assert config["source_localizer_settings"] == {}
     assert config["recorded_config"]["calibration"] == "none"
-    assert config["localizer_config"]["bearing_sigma_rad"] == 0.03  # the default
+    assert config["localizer_config"]["bearing_sigma_rad"] == BEARING_SIGMA_RAD  # the default
     res = CliRunner().invoke(app, [*args, "--dataset-option", "calibration"])
     assert res.exit_code == 2 and "NAME=VALUE" in res.output

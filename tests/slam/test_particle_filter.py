@@ -34,6 +34,9 @@ from slam.particle_filter import (
 from slam.trajectory import Trajectory
 
 CAL = WalkerCalibration()
+# A range-bearing sensor whose range is as informative as its bearing (MRCLAM-like), for the
+# synthetic RangeBearing tests (the defaults describe a tag camera: precise bearing only).
+RB_SENSOR = {"range_sigma_m": 0.05, "range_sigma_frac": 0.02, "bearing_sigma_rad": 0.03}
 
 
 def arc_ticks(n: int, left: int = 20, right: int = 24, dt: float = 0.02) -> list[EncoderTicks]:
@@ -145,7 +148,10 @@ def test_unknown_landmark_ids_are_counted_not_used():
 
 def test_resamples_when_the_weights_degenerate():
     cfg = ParticleFilterConfig(
-        n_particles=400, initial_sigma=(0.5, 0.5, 0.2), landmark_map={1: (3.0, 0.0), 2: (0.0, 3.0)}
+        n_particles=400,
+        initial_sigma=(0.5, 0.5, 0.2),
+        landmark_map={1: (3.0, 0.0), 2: (0.0, 3.0)},
+        **RB_SENSOR,
     )
     pf = ParticleFilter(cfg, CAL)
     pf.process(EncoderTicks(0.0, 0, 0))
@@ -198,7 +204,7 @@ def test_smoothed_trajectory_corrects_the_stretch_before_the_observations(smooth
     smoother revises the past."""
     lm = {1: (6.0, 1.0), 2: (6.0, -1.0)}
     noise = MotionNoise(wheel_m=0.01)
-    common = {"n_particles": 500, "landmark_map": lm, "noise": noise, "seed": 3}
+    common = {"n_particles": 500, "landmark_map": lm, "noise": noise, "seed": 3, **RB_SENSOR}
     smooth = _straight_drive_with_biased_odometry(ParticleFilterConfig(**common, smoother=smoother))
     filtered = _straight_drive_with_biased_odometry(ParticleFilterConfig(**common, smoother="none"))
     assert smooth.revises_past and not filtered.revises_past
@@ -222,7 +228,7 @@ def test_an_outlier_does_not_wipe_out_the_right_particles():
     def run(eps: float) -> np.ndarray:
         cfg = ParticleFilterConfig(
             n_particles=1000, initial_sigma=(0.3, 0.3, 0.1), landmark_map=lm, seed=2,
-            outlier_prob=eps,
+            outlier_prob=eps, **RB_SENSOR,
         )  # fmt: skip
         pf = ParticleFilter(cfg, CAL)
         pf.process(EncoderTicks(0.0, 0, 0))
