@@ -23,9 +23,10 @@ from control.base import CONTROLLERS
 from experiments import metrics as M
 from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
 from experiments.run import MAP_BAND_M, VERSION
-from experiments.studies.settings import build_config
+from experiments.studies.settings import SOURCE_SETTINGS, build_config, source_settings
 from hardware.log import LogWriter
 from hardware.sim.simulator import WALKER_PARTS, SimConfig, Simulator
+from hardware.sim.slip import proposed_localizer_settings
 from hardware.sim.user import ConstantPush, UserProfile
 from hardware.sim.world import load_world
 from slam.base import LOCALIZERS, create
@@ -68,9 +69,16 @@ def _config_dict(cfg: Any) -> dict[str, Any]:
     return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
 
 
+def proposed_settings(spec: RunSpec) -> dict[str, Any]:
+    """The trial-log metadata entry of the settings the simulated trial proposes."""
+    return {SOURCE_SETTINGS: proposed_localizer_settings(spec.surface)}
+
+
 def localizer_config(spec: RunSpec) -> Any:
+    """The run's live localizer: its defaults, the trial's proposals, the overrides."""
     over = dict(spec.localizer_overrides)
-    cfg = build_config(LOCALIZERS, spec.localizer, over.items())
+    proposed = source_settings(LOCALIZERS, spec.localizer, proposed_settings(spec))
+    cfg = build_config(LOCALIZERS, spec.localizer, [*proposed.items(), *over.items()])
     if "seed" not in over and any(f.name == "seed" for f in fields(cfg)):
         cfg = replace(cfg, seed=spec.seed)
     return cfg
@@ -154,7 +162,7 @@ def run_trial(spec: RunSpec) -> dict[str, Any]:
     if spec.log_path:
         path = Path(spec.log_path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        meta = {"config": config, "world": world.to_dict()}
+        meta = {"config": config, "world": world.to_dict(), **proposed_settings(spec)}
         with LogWriter(path, cal, metadata=meta) as log:
             run_closed_loop(sim, pipeline, ctl, loop, sink=log.write)
     else:

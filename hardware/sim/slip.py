@@ -40,6 +40,26 @@ def surface_coefficient(surface: str | float) -> float:
     return value
 
 
+def proposed_localizer_settings(surface: str | float) -> dict[str, float]:
+    """The odometry noise a simulated trial on `surface` proposes to its localizers
+    (trial-log metadata "localizer_settings", applied before the user's --set, as a
+    dataset importer's fitted noise levels are).
+
+    wheel_m [m²/m] = 5e-5 + 7e-3 · k^1.25 (k: the surface's slip ratio at full brake
+    force). Measured on simulated thesis-course trials with open-loop braking (seed 1,
+    1 s windows of each wheel's encoder distance against the true wheel arcs): variance
+    per metre rolled 1.8e-5 (clean) / 3.5e-5 (dusty) without brakes; in windows with a
+    brake on, 3.6e-5 on clean (k = 0.02), 3.0e-4 on dusty (0.12), 9.8e-4 at k = 0.3 —
+    about 4.3e-3 · k^1.25. The proposal is ~1.7 times that, plus a floor for the wheel
+    diameter's 0.5 % mis-calibration, because slip is biased (it only under-reports) and
+    correlated over a braking episode. The walker-wide default (slam.motion.MotionNoise,
+    2.5e-3: the thesis's 5 % encoder error) is 5–25 times more: a filter whose particles
+    spread that wide loses the map frame (FastSLAM's surviving lineage drifts by several
+    degrees; BENCHMARKS.md, "Simulated course")."""
+    k = surface_coefficient(surface)
+    return {"noise.wheel_m": 5e-5 + 7e-3 * k**1.25}
+
+
 class SlipModel:
     """Slip ratio of each rear wheel as a function of its brake force."""
 
