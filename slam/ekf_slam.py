@@ -28,7 +28,8 @@ from slam.measurement import (
     range_bearing,
     range_bearing_jacobians,
 )
-from slam.motion import MotionNoise, OdometryModel, propagate
+from slam.motion import Cov3, MotionNoise, OdometryModel, propagate
+from slam.rts import arc_steps, rts_smooth
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 
@@ -41,6 +42,10 @@ class EkfSlamConfig:
     range_sigma_m + range_sigma_frac·r: range noise; bearing_sigma_rad: bearing noise
     (defaults: an AprilTag camera, slam.measurement.RANGE_SIGMA_M and the others).
     gate_chi2: Mahalanobis gate for an update (13.8 = 99.9 % for 2 DOF); inf disables.
+    smoother: "rts": `trajectory()` is the filtered pose track RTS-smoothed over the
+    odometry (slam.rts, pose-only), so a loop closure's correction also moves the path
+    that led to it and the pipeline rebuilds the map along it (`revises_past`);
+    "none": the filtered poses, each fixed when it was recorded.
     """
 
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -49,6 +54,16 @@ class EkfSlamConfig:
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     gate_chi2: float = 13.8
+    smoother: str = "rts"
+
+    def __post_init__(self) -> None:
+        if self.smoother not in SMOOTHERS:
+            raise ValueError(
+                f"smoother must be one of {', '.join(SMOOTHERS)}, got {self.smoother!r}"
+            )
+
+
+SMOOTHERS = ("rts", "none")
 
 
 class EkfSlam(Localizer):
@@ -67,6 +82,13 @@ class EkfSlam(Localizer):
         self.index: dict[int, int] = {}  # landmark id → state offset
         self.counts = {"updates": 0, "new_landmarks": 0, "gated": 0, "without_id": 0}
         self.track = TrajectoryRecorder()
+        self.revises_past = config.smoother == "rts"
+        # per recorded step, for the smoother: the pose covariance (after the updates of
+        # that time) and the odometry increment that led to it (ds, dθ, q00, q01, q11)
+        self._f_cov: list[Cov3] = []
+        self._f_inc: list[tuple[float, float, float, float, float]] = []
+        self._inc = [0.0, 0.0, 0.0, 0.0, 0.0]
+        self._path_cache: tuple[tuple[int, int], Trajectory] | None = None
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
@@ -83,6 +105,8 @@ class EkfSlam(Localizer):
         self._pose, self._cov3, (a, b) = propagate(self._pose, self._cov3, ds, dth, q)
         self._cross[0] += a
         self._cross[1] += b
+        if self.revises_past:  # one increment per recorded step (odometry is recorded)
+            self._inc = [ds, dth, float(q[0, 0]), float(q[0, 1]), float(q[1, 1])]
 
     def _sync(self) -> None:
         """Bring the full state up to date with the predictions since the last update."""
@@ -117,6 +141,9 @@ class EkfSlam(Localizer):
             else:
                 self._add_landmark(lid, z)
         self._unsync()
+        if self.revises_past and self._f_cov:
+            self._f_cov[-1] = self._cov3
+            self.revision += 1
 
     def _add_landmark(self, lid: int, z: np.ndarray) -> None:
         pose = self._x[:3]
@@ -155,14 +182,36 @@ class EkfSlam(Localizer):
         self.track.amend(tuple(self._x[:3].tolist()))
 
     def _record(self, t: float) -> None:
+        n = len(self.track)
         self.track.record(t, self._pose)
+        if not self.revises_past:
+            return
+        if len(self.track) > n:
+            self._f_cov.append(self._cov3)
+            self._f_inc.append(tuple(self._inc))
+        else:  # the same time again: that step, moved further
+            self._f_cov[-1] = self._cov3
+            prev = self._f_inc[-1]
+            self._f_inc[-1] = (prev[0] + self._inc[0], prev[1] + self._inc[1], *self._inc[2:])
+        self._inc = [0.0, 0.0, 0.0, 0.0, 0.0]
 
     # -- outputs ----------------------------------------------------------------------
     def estimate(self) -> PoseEstimate:
         return PoseEstimate(self.track.last_t, np.array(self._pose), np.array(self._cov3))
 
     def trajectory(self) -> Trajectory:
-        return self.track.trajectory()
+        """The RTS-smoothed pose track (config.smoother) or the filtered poses."""
+        filtered = self.track.trajectory()
+        if not self.revises_past or len(filtered) < 2:
+            return filtered
+        key = (self.revision, len(filtered))
+        if self._path_cache is None or self._path_cache[0] != key:
+            inc = np.array(self._f_inc)
+            q = inc[:, [2, 3, 3, 4]].reshape(-1, 2, 2)
+            deltas, delta_covs = arc_steps(inc[:, 0], inc[:, 1], q)
+            poses = rts_smooth(filtered.poses, np.array(self._f_cov), deltas, delta_covs)
+            self._path_cache = (key, Trajectory(filtered.t, poses))
+        return self._path_cache[1]
 
     def state(self) -> tuple[np.ndarray, np.ndarray]:
         """(mean, covariance) of the whole state [x, y, θ, u_1, v_1, …] (copies)."""

@@ -47,7 +47,7 @@ def wheel_increment(ds_left: float, ds_right: float, track: float) -> tuple[floa
     return 0.5 * (ds_left + ds_right), (ds_right - ds_left) / track
 
 
-def _sinc_and_derivative(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def sinc_and_derivative(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """S(u) = sin(u)/u and S'(u), stable near 0."""
     u = np.asarray(u, dtype=float)
     small = np.abs(u) < 1e-4
@@ -64,7 +64,7 @@ def apply_increment(
     poses = np.asarray(poses, dtype=float)
     ds = np.asarray(ds, dtype=float)
     half = 0.5 * np.asarray(dtheta, dtype=float)
-    s, _ = _sinc_and_derivative(half)
+    s, _ = sinc_and_derivative(half)
     chord = ds * s
     h = poses[..., 2] + half
     out = np.empty(np.broadcast_shapes(poses.shape, (*np.shape(chord), 3)))
@@ -77,7 +77,7 @@ def apply_increment(
 def increment_jacobians(theta: float, ds: float, dtheta: float) -> tuple[np.ndarray, np.ndarray]:
     """F = ∂pose'/∂pose (3×3) and G = ∂pose'/∂(ds, dθ) (3×2) of the exact arc."""
     half = 0.5 * dtheta
-    s, s_prime = (float(v) for v in _sinc_and_derivative(half))
+    s, s_prime = (float(v) for v in sinc_and_derivative(half))
     chord = ds * s
     dchord = 0.5 * ds * s_prime  # ∂chord/∂dθ
     h = theta + half

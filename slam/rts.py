@@ -15,6 +15,11 @@ The particle filter uses it on its weighted mean and covariance (a Gaussian summ
 the particles): an observation then corrects the stretch that led to it, spread over
 the steps in proportion to the odometry's uncertainty, without the path degeneracy of
 reading the particles' ancestry back (where the old past is a single particle's path).
+EKF-SLAM uses it on its pose marginal (`arc_steps` turns its per-message odometry
+increments into the deltas): a pose-only smoother, which treats the landmark updates
+of different times as independent — not exact in SLAM, where they share the landmark
+estimates, but it carries a loop closure's correction back along the path that led to
+it, which the filtered poses (fixed when recorded) cannot.
 """
 
 from __future__ import annotations
@@ -22,6 +27,25 @@ from __future__ import annotations
 import numpy as np
 
 from slam.geometry import compose, wrap_angle
+from slam.motion import apply_increment, sinc_and_derivative
+
+
+def arc_steps(ds: np.ndarray, dtheta: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Odometry increments (K,) along exact arcs with 2×2 covariances q (K, 2, 2) → the
+    deltas (K, 3) in the frame of the pose before each, and their covariances G q Gᵀ
+    (K, 3, 3), G = ∂delta/∂(ds, dθ) (as `slam.motion.increment_jacobians` at θ = 0)."""
+    ds = np.asarray(ds, dtype=float)
+    half = 0.5 * np.asarray(dtheta, dtype=float)
+    deltas = apply_increment(np.zeros((len(ds), 3)), ds, 2.0 * half)
+    s, s_prime = sinc_and_derivative(half)
+    chord, dchord = ds * s, 0.5 * ds * s_prime
+    c, sn = np.cos(half), np.sin(half)
+    g = np.zeros((len(ds), 3, 2))
+    g[:, 0, 0], g[:, 1, 0] = s * c, s * sn
+    g[:, 0, 1] = dchord * c - 0.5 * chord * sn
+    g[:, 1, 1] = dchord * sn + 0.5 * chord * c
+    g[:, 2, 1] = 1.0
+    return deltas, g @ np.asarray(q, dtype=float) @ np.swapaxes(g, 1, 2)
 
 
 def rts_smooth(

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from slam.geometry import compose
-from slam.rts import rts_smooth
+from slam.motion import apply_increment, increment_jacobians
+from slam.rts import arc_steps, rts_smooth
 
 
 def _kalman(deltas, q, z, r, x0, p0):
@@ -132,3 +133,18 @@ def test_curved_path_pulls_the_past_toward_a_late_fix():
     assert shift[0] < 1e-9
     assert shift[-2] > shift[k // 2] > shift[5] > 0.0
     assert shift[-2] == pytest.approx(0.1, abs=0.02)
+
+
+def test_arc_steps_are_the_exact_arc_and_its_jacobian():
+    """arc_steps (vectorised) = apply_increment from the origin and G q Gᵀ with
+    G = increment_jacobians at θ = 0, for straight, curved and turning-in-place steps."""
+    ds = np.array([0.02, 0.03, 0.0, -0.01])
+    dth = np.array([0.0, 0.2, -0.05, 0.01])
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(4, 2, 2))
+    q = a @ np.swapaxes(a, 1, 2) * 1e-4
+    deltas, covs = arc_steps(ds, dth, q)
+    for k in range(4):
+        np.testing.assert_allclose(deltas[k], apply_increment(np.zeros(3), ds[k], dth[k]))
+        _, g = increment_jacobians(0.0, float(ds[k]), float(dth[k]))
+        np.testing.assert_allclose(covs[k], g @ q[k] @ g.T, atol=1e-15)
