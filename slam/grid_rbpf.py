@@ -80,7 +80,7 @@ class GridRbpf(ParticleFilter):
         self._variance: list[tuple[float, float, float]] = []  # (t, var xy, var θ)
         self._segment_totals: list[tuple[float, float]] = []  # at each frame
         self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
-        self.counts.update(scan_matches=0, unmatched=0, map_copies=0)
+        self.counts.update(scan_matches=0, unmatched=0, map_copies=0, turn_starts=0)
         self.attach_map(None)
 
     # -- the particles' maps --------------------------------------------------------------
@@ -151,15 +151,7 @@ class GridRbpf(ParticleFilter):
                 continue
             scored = True
             kernel = (c.match_kernel_cells, c.match_sigma_m, c.z_hit, c.z_rand)
-            pose, _, matched = hill_climb(
-                *args,
-                points,
-                self.particles[i].copy(),
-                c.match_step_m,
-                c.match_step_rad,
-                c.match_refinements,
-                *kernel,
-            )
+            pose, matched = self._match(args, points, self.particles[i], prior[i], kernel)
             if matched >= c.min_points:
                 fit = lattice(pose, (1, 1, 1), steps)
                 ll = c.match_beam_weight * poses_log_likelihood(*args, points, fit, *kernel)
@@ -187,6 +179,30 @@ class GridRbpf(ParticleFilter):
         self._moved = (0.0, 0.0)
         self.revision += 1
         self._snapshot(msg.t)
+
+    def _match(
+        self, args: tuple, points: np.ndarray, start: np.ndarray, prior: np.ndarray, kernel
+    ) -> tuple[np.ndarray, int]:
+        """Hill-climbed pose from `start`, and from `start` turned by ± match_turn_starts_sigma
+        heading σ of `prior` when that is at least two first angular steps: (pose, matched)."""
+        c = self.config
+        sigma_theta = math.sqrt(max(float(prior[2, 2]), 0.0))
+        turns = [0.0]
+        offset = c.match_turn_starts_sigma * sigma_theta
+        if offset >= 2.0 * c.match_step_rad:  # nearer starts the climb reaches by itself
+            turns += [offset, -offset]
+        best = None
+        for turn in turns:
+            s = start.copy()
+            s[2] += turn
+            pose, score, matched = hill_climb(
+                *args, points, s, c.match_step_m, c.match_step_rad, c.match_refinements, *kernel
+            )
+            if best is None or score > best[1]:
+                best = (pose, score, matched)
+        if len(turns) > 1:
+            self.counts["turn_starts"] += 1
+        return best[0], best[2]
 
     def _scoring_points(self, obs) -> np.ndarray:
         """Up to max_beams of the frame's obstacle points within max_range_m (walker frame)."""
