@@ -24,7 +24,9 @@ Metadata records (MCAP metadata maps str to str, so each dict is stored as one k
 "json" holding `json.dumps(dict)`; strict JSON, no NaN):
 
     calibration   WalkerCalibration.to_dict(); required, a log without it is rejected
-    <name>        every dict given as LogWriter(metadata={name: dict}), e.g. "config", "world"
+    <name>        every dict given as LogWriter(metadata={name: dict}), e.g. "config", "world",
+                  "localizer_settings" (settings the source proposes to localizers,
+                  experiments.studies.settings.source_settings)
 
 Attachments: LogWriter(attachments={name: bytes}), media type application/octet-stream.
 
