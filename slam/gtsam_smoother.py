@@ -6,7 +6,12 @@ the walker has moved `keyframe_distance_m`, turned `keyframe_angle_rad` or
 `keyframe_time_s` has passed, and also when landmarks are seen `obs_keyframe_dt_s`
 after the last keyframe. Landmark observations become `BearingRangeFactor2D` factors on
 their keyframe with a Huber-robust noise model (outliers lose their pull rather than
-being gated). Every update revises the past: `trajectory()` is the smoothed estimate,
+being gated). With `observation="tag-pose"` a tag detection's full planar pose is used:
+each tag is a `Pose2` variable (T(id)) and each detection a `BetweenFactorPose2` from
+its keyframe to the tag — position noise from the range and bearing σ, rotated into the
+tag's frame, and yaw σ = yaw_sigma_rad + yaw_sigma_per_m2·r² — also Huber-robust (far
+tags' yaw flips); observations without a yaw (range-bearing datasets) are skipped and
+counted. Every update revises the past: `trajectory()` is the smoothed estimate,
 every odometry message placed relative to its (smoothed) keyframe.
 
 Scan matching (`scan_matching=True`, off by default). Laser scans (`LaserScan`, with
@@ -69,12 +74,12 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, X
+from gtsam.symbol_shorthand import L, T, X
 
 from hardware.calibration import WalkerCalibration
 from hardware.messages import DepthFrame, LaserScan, Message
 from slam.base import Localizer, PoseEstimate, register
-from slam.geometry import compose
+from slam.geometry import compose, wrap_angle
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -97,6 +102,7 @@ from slam.scan_matching import (
 from slam.trajectory import Trajectory
 
 ROBUST_KERNELS = ("huber", "cauchy", "none")
+OBSERVATIONS = ("range-bearing", "tag-pose")
 
 
 @dataclass(frozen=True)
@@ -108,6 +114,10 @@ class GtsamConfig:
     after the last keyframe start a new one (else they attach to it).
     range_sigma_m + range_sigma_frac·r, bearing_sigma_rad: landmark measurement noise;
     huber_k: robust kernel threshold in standard deviations.
+    observation: "range-bearing" (BearingRangeFactor2D to a point landmark) or
+    "tag-pose" (BetweenFactorPose2 to a Pose2 tag; module docstring), with
+    yaw_sigma_rad + yaw_sigma_per_m2·r² the tag-yaw noise (as FastSlamConfig's: they fit
+    the simulated tag camera).
     odometry_sigma_floor: added to each between-keyframe odometry covariance (x, y, θ):
     wheel odometry has no lateral noise of its own (the axle cannot slide), and a
     rank-deficient covariance makes the system ill-conditioned.
@@ -133,6 +143,9 @@ class GtsamConfig:
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     huber_k: float = 1.345
+    observation: str = "range-bearing"
+    yaw_sigma_rad: float = 0.02
+    yaw_sigma_per_m2: float = 0.03
     relinearize_threshold: float = 0.01
     odometry_sigma_floor: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
     # QR: a long odometry-only chain (Intel lab, 3000 keyframes, tens of metres of
@@ -177,6 +190,12 @@ class GtsamConfig:
     loop_extra_updates: int = 2
 
     def __post_init__(self) -> None:
+        if self.observation not in OBSERVATIONS:
+            raise ValueError(
+                f"observation must be one of {', '.join(OBSERVATIONS)}, got {self.observation!r}"
+            )
+        if self.yaw_sigma_rad <= 0 or self.yaw_sigma_per_m2 < 0:
+            raise ValueError("yaw_sigma_rad must be > 0 and yaw_sigma_per_m2 >= 0")
         if self.odometry_cov not in ("auto", "model", "distance"):
             raise ValueError(
                 f"odometry_cov must be auto, model or distance, got {self.odometry_cov!r}"
@@ -245,6 +264,9 @@ class GtsamSmoother(Localizer):
         self._marginal: np.ndarray | None = None
         self._cache: tuple[int, Trajectory] | None = None
         self.counts = {"keyframes": 0, "landmark_factors": 0, "without_id": 0, "updates": 0}
+        self._tags = config.observation == "tag-pose"
+        if self._tags:
+            self.counts["without_yaw"] = 0
         self._t: float | None = None
         # scan matching
         self._scans: list[_ScanKeyframe] = []
@@ -367,7 +389,7 @@ class GtsamSmoother(Localizer):
         if obs.t - self._kf_t[-1] >= self.config.obs_keyframe_dt_s and np.any(self._delta != 0):
             self._new_keyframe(obs.t)
         c = self.config
-        for lid, z in zip(obs.ids, obs.z, strict=True):
+        for lid, z, yaw in zip(obs.ids, obs.z, obs.yaw, strict=True):
             lid = int(lid)
             if lid < 0:
                 self.counts["without_id"] += 1
@@ -378,6 +400,12 @@ class GtsamSmoother(Localizer):
             q = self._delta[:2] + np.array([c_ * p[0] - s_ * p[1], s_ * p[0] + c_ * p[1]])
             r, b = float(np.hypot(*q)), float(math.atan2(q[1], q[0]))
             sr = c.range_sigma_m + c.range_sigma_frac * r
+            if self._tags:
+                if not math.isfinite(yaw):
+                    self.counts["without_yaw"] += 1
+                    continue
+                self._tag_factor(lid, q, r, b, sr, float(wrap_angle(yaw + self._delta[2])))
+                continue
             noise = gtsam.noiseModel.Robust.Create(
                 gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k),
                 gtsam.noiseModel.Diagonal.Sigmas(np.array([c.bearing_sigma_rad, sr])),
@@ -392,6 +420,29 @@ class GtsamSmoother(Localizer):
                 self._values.insert(L(lid), gtsam.Point2(*guess))
             self.counts["landmark_factors"] += 1
         self._flush()
+
+    def _tag_factor(self, lid: int, q: np.ndarray, r: float, b: float, sr: float, psi: float):
+        """BetweenFactorPose2 keyframe → tag T(lid) seen at q (keyframe frame), range r,
+        bearing b, tag yaw ψ. Pose2's between error is in the tag's own frame: the range /
+        across-range covariance is rotated by b − ψ into it."""
+        c = self.config
+        cov_rb = np.diag([sr * sr, (r * c.bearing_sigma_rad) ** 2])
+        a = b - psi
+        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        cov = np.zeros((3, 3))
+        cov[:2, :2] = rot @ cov_rb @ rot.T
+        cov[2, 2] = (c.yaw_sigma_rad + c.yaw_sigma_per_m2 * r * r) ** 2
+        noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k),
+            gtsam.noiseModel.Gaussian.Covariance(cov),
+        )
+        rel = gtsam.Pose2(float(q[0]), float(q[1]), psi)
+        self._graph.add(gtsam.BetweenFactorPose2(X(self._kf), T(lid), rel, noise))
+        if lid not in self._landmarks:
+            self._landmarks.add(lid)
+            kf = gtsam.Pose2(*(float(v) for v in self._kf_pose))
+            self._values.insert(T(lid), kf.compose(rel))
+        self.counts["landmark_factors"] += 1
 
     # -- scan matching ----------------------------------------------------------------
     def _scan_points(self, msg: LaserScan | DepthFrame) -> Scan:
@@ -619,8 +670,18 @@ class GtsamSmoother(Localizer):
         values = self.isam.calculateEstimate()
         out = {}
         for lid in sorted(self._landmarks):
-            p = values.atPoint2(L(lid))
-            out[lid] = (np.array(p, dtype=float).reshape(2), self.isam.marginalCovariance(L(lid)))
+            if self._tags:  # a Pose2: its position and that block of the marginal
+                tag = values.atPose2(T(lid))
+                c, s = math.cos(tag.theta()), math.sin(tag.theta())
+                rot = np.array([[c, -s], [s, c]])  # the marginal is in the tag's frame
+                cov = rot @ self.isam.marginalCovariance(T(lid))[:2, :2] @ rot.T
+                out[lid] = (np.array([tag.x(), tag.y()]), cov)
+            else:
+                p = values.atPoint2(L(lid))
+                out[lid] = (
+                    np.array(p, dtype=float).reshape(2),
+                    self.isam.marginalCovariance(L(lid)),
+                )
         return out
 
     def diagnostics(self) -> dict:

@@ -7,10 +7,13 @@ import pytest
 from helpers import replay
 
 from experiments.metrics import ate, map_scores
+from experiments.pipeline import Pipeline
 from hardware.calibration import WalkerCalibration
+from hardware.log import read_log
 from hardware.messages import EncoderTicks, RangeBearing
 from hardware.sim.world import World
 from slam.base import create
+from slam.gtsam_smoother import GtsamConfig
 
 
 @pytest.mark.slow
@@ -109,3 +112,38 @@ def test_long_odometry_only_chain_does_not_break_the_solver():
     assert sm.diagnostics()["keyframes"] > 3000
     end_sm, end_dr = sm.trajectory().poses[-1], dr.trajectory().poses[-1]
     assert np.hypot(*(end_sm[:2] - end_dr[:2])) < 0.05
+
+
+@pytest.mark.slow
+def test_tag_pose_factors_localize_and_map_the_tags(course_trial):
+    """observation="tag-pose": each tag a Pose2, each detection a BetweenFactorPose2 with
+    its yaw. On the course trial (defaults otherwise) it beats dead reckoning as the
+    range-bearing factors do, and the tags' positions and yaws come out near the truth.
+    Measured (the walker-wide odometry noise default): ATE 0.100 m vs dead reckoning
+    0.558 m; tag position median error 0.17 m, unaligned."""
+    trial = read_log(course_trial)
+    start = trial.metadata["config"]["initial_pose"]
+    sm = create("gtsam", trial.calibration, GtsamConfig(observation="tag-pose"), initial_pose=start)
+    pipe = Pipeline(sm, trial.calibration, reference_map=False)
+    pipe.run(trial.messages())
+    dr, _, _ = replay(course_trial, "dead-reckoning")
+    gt = pipe.recorded.groundtruth_trajectory()
+    assert ate(sm.trajectory(), gt)["ate_rmse_m"] < 0.3 * ate(dr.trajectory(), gt)["ate_rmse_m"]
+    world = World.from_dict(trial.metadata["world"])
+    lms = sm.landmarks()
+    assert len(lms) >= 20 and sm.diagnostics()["without_yaw"] == 0
+    err = [np.hypot(*(m - [world.tag(i).x, world.tag(i).y])) for i, (m, _) in lms.items()]
+    assert np.median(err) < 0.25
+    assert all(np.all(np.linalg.eigvalsh(c) > 0) for _, c in lms.values())
+
+
+def test_tag_pose_skips_observations_without_a_yaw():
+    cal = WalkerCalibration()
+    sm = create("gtsam", cal, GtsamConfig(observation="tag-pose"))
+    for k in range(20):
+        sm.process(EncoderTicks(0.05 * k, 10 * k, 10 * k))
+        sm.process(RangeBearing(0.05 * k, 3, 2.0, 0.1))  # a range-bearing sensor: no yaw
+    d = sm.diagnostics()
+    assert d["without_yaw"] == 20 and d["landmark_factors"] == 0 and sm.landmarks() == {}
+    with pytest.raises(ValueError, match="observation"):
+        GtsamConfig(observation="tag-corners")
