@@ -45,6 +45,8 @@ class Recorded:
     commands: list[BrakeCommand] = field(default_factory=list)
     collisions: list[Collision] = field(default_factory=list)
     counts: dict[str, int] = field(default_factory=dict)
+    # messages dropped because their time is earlier than the previous one of their type
+    out_of_order: dict[str, int] = field(default_factory=dict)
     t_first: float = math.nan
     t_last: float = math.nan
 
@@ -76,10 +78,20 @@ class Pipeline:
         # A smoother revises past poses: keep its frames (keyed by time) to rebuild the map.
         self._keep_frames = localizer.revises_past
         self._built_revision = localizer.revision
+        self._last_t: dict[str, float] = {}  # per message type, for the order check
 
     def feed(self, msg: Message) -> None:
+        """One message to the localizer and the mappers. A message older than the previous
+        one of its type (a time going backwards within a stream) is dropped and counted in
+        `recorded.out_of_order`: motion models, trajectories and maps assume each stream's
+        time only moves forward."""
         rec = self.recorded
         name = type(msg).__name__
+        last = self._last_t.get(name)
+        if last is not None and msg.t < last:
+            rec.out_of_order[name] = rec.out_of_order.get(name, 0) + 1
+            return
+        self._last_t[name] = msg.t
         rec.counts[name] = rec.counts.get(name, 0) + 1
         if math.isnan(rec.t_first):
             rec.t_first = msg.t

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from importlib import metadata
@@ -108,6 +109,11 @@ def simulate_trial(
         M.collision_counts(pipeline.recorded.collisions),
         bool(sim.user.finished),
     )
+
+
+class ReplayWarning(UserWarning):
+    """What a replay's user should know about it: messages dropped (a stream's time going
+    backwards), a localizer's fallback (e.g. no observations: odometry only)."""
 
 
 @dataclass
@@ -221,6 +227,18 @@ def replay_log(
     diagnostics = loc.diagnostics()
     if diagnostics:
         metrics["localizer_diagnostics"] = diagnostics
+    if rec.out_of_order:
+        metrics["out_of_order_dropped"] = dict(rec.out_of_order)
+        what = ", ".join(f"{n} {name}" for name, n in sorted(rec.out_of_order.items()))
+        warnings.warn(
+            f"{log_path}: dropped messages whose time went backwards in their stream: {what}",
+            ReplayWarning,
+            stacklevel=2,
+        )
+    if diagnostics.get("note"):
+        warnings.warn(
+            f"{log_path}: {localizer}: {diagnostics['note']}", ReplayWarning, stacklevel=2
+        )
     est = loc.trajectory()
     files["trajectory"] = out / "trajectory.tum"
     est.write_tum(files["trajectory"])

@@ -116,3 +116,18 @@ def test_demo_end_to_end(tmp_path):
     # Mapping the same frames at the true poses is at least as precise as at the estimate.
     assert m["reference_map"]["map_precision"] >= m["map_precision"] - 0.02
     assert "maps_side_by_side.png" in res.stdout
+
+
+def test_a_localizer_without_observations_falls_back_and_says_so(tmp_path):
+    """A log with odometry only, replayed with EKF-SLAM: it runs (dead reckoning), says
+    so on one warning line and in metrics.json."""
+    log = tmp_path / "odo.mcap"
+    with LogWriter(log, WalkerCalibration(), background_flush=False) as w:
+        for k in range(100):
+            w.write(EncoderTicks(0.02 * k, 3 * k, 4 * k))
+    res = walkerslam("replay", log, "--localizer", "ekf-slam", "--out", tmp_path / "o")
+    assert res.returncode == 0, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "odometry only" in lines[0] and "odo.mcap" in lines[0], res.stderr
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert "odometry only" in metrics["localizer_diagnostics"]["note"]
