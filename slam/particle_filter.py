@@ -120,6 +120,8 @@ class ParticleFilterConfig:
         (as EkfSlamConfig: an AprilTag camera's, slam.measurement.RANGE_SIGMA_M...).
     landmark_map: known landmarks {id: (x, y)}; filled from the trial log by
         `slam.base.create(..., landmark_map=...)`; None: landmarks are not used.
+    use_landmarks: False ignores the landmark map (scans only, e.g. to study
+        localization without tags on a trial whose log knows them).
     use_scans: weight by depth frames / laser scans against the attached occupancy map
         (`ParticleFilter.attach_map`). Off by default: against the shared map, which is
         built at this filter's own estimates, each frame's small matching error becomes
@@ -190,6 +192,7 @@ class ParticleFilterConfig:
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     landmark_map: dict[int, np.ndarray] | None = None
+    use_landmarks: bool = True
     use_scans: bool = False
     sigma_hit_m: float = 0.1
     z_hit: float = 0.9
@@ -322,7 +325,7 @@ class ParticleFilter(Localizer):
         self.particles[:, 2] = wrap_angle(self.particles[:, 2])
         self.log_weights = np.full(n, -math.log(n))
         self._weights = np.full(n, 1.0 / n)
-        lm = config.landmark_map or {}
+        lm = (config.landmark_map or {}) if config.use_landmarks else {}
         self._landmark_index = {int(k): i for i, k in enumerate(lm)}
         self._landmarks = np.array([np.asarray(v, dtype=float)[:2] for v in lm.values()])
         self._landmarks = self._landmarks.reshape(-1, 2)

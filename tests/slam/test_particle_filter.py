@@ -351,6 +351,29 @@ def test_depth_frames_against_a_map_at_the_true_poses_localise(course_trial):
 
 
 @pytest.mark.slow
+def test_depth_frames_against_a_map_per_particle_beat_dead_reckoning_without_tags(course_trial):
+    """The Rao-Blackwellized variant (maps="per-particle", 60 particles, each with its own
+    grid) on the walker's 160×120 depth frames, the tag map ignored: it removes most of
+    the slip's drift. Measured on course_trial (defaults, seed 0): aligned ATE 0.054 m vs
+    dead reckoning 0.558 m, unaligned 0.306 vs 0.969 m."""
+    trial = read_log(course_trial)
+    start = trial.metadata["config"]["initial_pose"]
+    cfg = ParticleFilterConfig(use_scans=True, maps="per-particle", use_landmarks=False)
+    pf = create("particle-filter", trial.calibration, cfg, start, landmark_map={1: (0.0, 0.0)})
+    pipe = Pipeline(pf, trial.calibration, reference_map=False)
+    dr = create("dead-reckoning", trial.calibration, initial_pose=start)
+    for m in trial.messages():
+        pipe.feed(m)
+        dr.process(m)
+    gt = pipe.recorded.groundtruth_trajectory()
+    d = pf.diagnostics()
+    assert d["scan_updates"] > 200 and d["landmark_observations"] == 0  # scans only
+    e_pf, e_dr = ate(pf.trajectory(), gt), ate(dr.trajectory(), gt)
+    assert e_pf["ate_rmse_m"] < 0.3 * e_dr["ate_rmse_m"]
+    assert e_pf["ate_rmse_unaligned_m"] < 0.6 * e_dr["ate_rmse_unaligned_m"]
+
+
+@pytest.mark.slow
 @pytest.mark.xfail(
     reason="depth frames against the shared map that the filter's own estimates build: "
     "measured on course_trial (500 particles, defaults + use_scans): unaligned ATE 0.876 m "
