@@ -127,6 +127,13 @@ class FastSlamConfig:
     gate_chi2: Mahalanobis gate of an observation; None = the 99.9 % χ² quantile for the
     observation's dimension (13.8 for range-bearing, 16.3 for tag pose); inf disables.
     resample_threshold: resample when N_eff < resample_threshold · n_particles.
+    weight_gain: each observation's log-likelihood is divided by it before it enters the
+    weights (GMapping's "ogain"; the proposal uses the full likelihood). A tag seen at
+    10 Hz for seconds has errors shared by its frames (PnP bias, the same viewpoint), so
+    multiplying the frames' likelihoods as independent makes the weights far too sure;
+    resampling then keeps one particle's frame of the map early, and the map inherits its
+    heading error (BENCHMARKS.md, "Simulated course"). 1: the textbook weights. 20 was
+    chosen on simulated trials of seeds 1–2 (from 1, 3, 5, 10, 20, 40).
     seed: seed of the numpy Generator behind every random draw.
     smoothed_trajectory: `trajectory()` returns the weighted mean of the particles' whole
     paths, read back through resampling (slam.particle_paths), sampled every
@@ -150,6 +157,7 @@ class FastSlamConfig:
     seed: int = 0
     smoothed_trajectory: bool = True
     path_snapshot_s: float = 0.1
+    weight_gain: float = 20.0
 
     def __post_init__(self) -> None:
         if self.version not in (1, 2):
@@ -160,6 +168,8 @@ class FastSlamConfig:
             raise ValueError(
                 f"observation must be one of {', '.join(OBSERVATIONS)}, got {self.observation!r}"
             )
+        if not self.weight_gain >= 1.0:
+            raise ValueError(f"weight_gain must be >= 1, got {self.weight_gain}")
         if not 0.0 <= self.resample_threshold <= 1.0:
             raise ValueError(f"resample_threshold must be in [0, 1], got {self.resample_threshold}")
         if self.gate_chi2 is not None and not self.gate_chi2 > 0:
@@ -547,7 +557,7 @@ class FastSlam(Localizer):
                     mu, sigma = mu.copy(), sigma.copy()
                     mu[rows], sigma[rows] = mu_m, sig_m
                 mu[:, 2] = wrap_angle(mu[:, 2])
-            logw[rows] += _log_normal(nu, s)
+            logw[rows] += _log_normal(nu, s) / self.config.weight_gain
             self.counts["updates"] += 1
             used.append((col, z, r, m.copy()))
         if not used:
@@ -579,7 +589,7 @@ class FastSlam(Localizer):
                 fresh = seen if m is None else seen & ~m
                 if fresh.any():
                     ln = np.zeros(self.n)
-                    ln[rows] = _log_normal(nu, s)
+                    ln[rows] = _log_normal(nu, s) / self.config.weight_gain
                     logw[fresh] += ln[fresh]
             new = ~seen
             if new.any():

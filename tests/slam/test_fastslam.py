@@ -172,7 +172,12 @@ def test_config_is_checked_and_registered():
     assert "fastslam" in available()
     loc = create("fastslam", WalkerCalibration())
     assert loc.config == FastSlamConfig() and loc.config.version == 2
-    for bad in ({"version": 3}, {"n_particles": 0}, {"observation": "bearing-only"}):
+    for bad in (
+        {"version": 3},
+        {"n_particles": 0},
+        {"observation": "bearing-only"},
+        {"weight_gain": 0.5},
+    ):
         with pytest.raises(ValueError):
             FastSlamConfig(**bad)
 
@@ -235,17 +240,21 @@ def synthetic():
 
 
 def matched(version, observation="range-bearing", **kw):
-    """The filter told the synthetic world's true noise."""
+    """The filter told the synthetic world's true noise, which is independent from frame
+    to frame: the textbook weights (weight_gain 1)."""
     return FastSlamConfig(
-        initial_pose=(1.5, 0.0, math.pi / 2),
-        version=version,
-        observation=observation,
-        range_sigma_m=0.02,
-        range_sigma_frac=0.0,
-        bearing_sigma_rad=0.01,
-        yaw_sigma_rad=0.02,
-        yaw_sigma_per_m2=0.0,
-        **kw,
+        **{
+            "initial_pose": (1.5, 0.0, math.pi / 2),
+            "version": version,
+            "observation": observation,
+            "range_sigma_m": 0.02,
+            "range_sigma_frac": 0.0,
+            "bearing_sigma_rad": 0.01,
+            "yaw_sigma_rad": 0.02,
+            "yaw_sigma_per_m2": 0.0,
+            "weight_gain": 1.0,
+            **kw,
+        }
     )
 
 
