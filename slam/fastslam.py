@@ -52,11 +52,11 @@ predictive distribution of z, the weighted mixture Σ w_i N(ẑ_i, S_i) matched 
 Gaussian: (ν̄ᵀ C⁻¹ ν̄ > gate_chi2). A per-particle gate would let a drifted particle
 ignore exactly the observation that should remove it.
 
-What to expect (tests/slam/test_fastslam.py, the simulated course with slip, defaults):
-2.0 beats dead reckoning (median unaligned ATE 0.33 m vs 0.38 m, with a wide spread over
-seeds); 1.0 does not (0.77 m): the default odometry noise is several times the real
-error there, so 1.0's motion-sampled particles spread wide and the surviving lineage
-wanders (1000 particles bring it to 0.28 m).
+What to expect (BENCHMARKS.md; five simulated course trials with slip, defaults and the
+trials' proposed odometry noise, 3 seeds): 2.0 aligned ATE 0.073 m, unaligned 0.108 m
+(dead reckoning 0.58 / 1.26 m), phantom area −91 %; 1.0 is far behind (seed 2: 0.27 /
+0.52 m, −35 %): sampling the motion model alone, its particles rarely land where the
+tags say, and the weights then pick from a poor set.
 
 Resampling: systematic (as `filterpy.monte_carlo.systematic_resample`, but drawing its
 one uniform from the filter's generator so a run is reproducible from `seed`) when the
