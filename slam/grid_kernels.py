@@ -145,11 +145,11 @@ def hill_climb(
         z_rand,
     )
     trial = np.empty(3)
+    best_pose = np.empty(3)
     halvings = 0
     while halvings <= refinements:
         c, s = math.cos(pose[2]), math.sin(pose[2])
         improved = False
-        best_move = -1
         best_score = best
         best_matched = matched
         for move in range(6):
@@ -180,24 +180,10 @@ def hill_climb(
                 z_rand,
             )
             if score > best_score:
-                best_score, best_move, best_matched, improved = score, move, m, True
+                best_score, best_matched, improved = score, m, True
+                best_pose[:] = trial
         if improved:
-            if best_move == 0:
-                pose[0] += c * step_xy
-                pose[1] += s * step_xy
-            elif best_move == 1:
-                pose[0] -= c * step_xy
-                pose[1] -= s * step_xy
-            elif best_move == 2:
-                pose[0] -= s * step_xy
-                pose[1] += c * step_xy
-            elif best_move == 3:
-                pose[0] += s * step_xy
-                pose[1] -= c * step_xy
-            elif best_move == 4:
-                pose[2] += step_theta
-            else:
-                pose[2] -= step_theta
+            pose[:] = best_pose
             best, matched = best_score, best_matched
         else:
             step_xy *= 0.5
