@@ -205,14 +205,9 @@ class GridRbpf(ParticleFilter):
         return best[0], best[2]
 
     def _scoring_points(self, obs) -> np.ndarray:
-        """Up to max_beams of the frame's obstacle points within max_range_m (walker frame)."""
-        pts = np.asarray(obs.obstacles, dtype=float)
-        rel = pts - obs.sensor_xy
-        pts = pts[np.einsum("ij,ij->i", rel, rel) <= self.config.max_range_m**2]
-        k = self.config.max_beams
-        if len(pts) > k:
-            pts = pts[np.sort(self.rng.choice(len(pts), size=k, replace=False))]
-        return np.ascontiguousarray(pts)
+        """Up to max_beams of the frame's obstacle points within max_range_m (walker frame),
+        contiguous for the compiled score."""
+        return np.ascontiguousarray(self._points_in_range(obs))
 
     def _score_args(self, grid: GridExtent) -> tuple | None:
         """The grid as the compiled score reads it (slam.grid_kernels); None while empty."""

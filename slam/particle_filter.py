@@ -518,6 +518,11 @@ class ParticleFilter(Localizer):
         else:
             scan_cfg = getattr(mapper_cfg, "scan", None) or ScanConfig()
             obs = scan_to_observation(msg, (0.0, 0.0, 0.0), scan_cfg)
+        return self._points_in_range(obs)
+
+    def _points_in_range(self, obs) -> np.ndarray:
+        """Up to max_beams of an observation's obstacle points within max_range_m of its
+        sensor (a random subset, from the filter's generator, when there are more)."""
         pts = np.asarray(obs.obstacles, dtype=float)
         rel = pts - obs.sensor_xy
         pts = pts[np.einsum("ij,ij->i", rel, rel) <= self.config.max_range_m**2]
