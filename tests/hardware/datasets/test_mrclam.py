@@ -196,17 +196,7 @@ def test_dataset7_spurious_barcodes_robot3():
 def test_dataset7_measurements_agree_with_groundtruth(ds7_robot1):
     """Range and bearing predicted from the Vicon pose and landmark agree with the
     measurements (proves the barcode mapping and the bearing convention)."""
-    ds = ds7_robot1
-    gt = list(ds.messages([GroundTruthPose]))
-    t = np.array([m.t for m in gt])
-    poses = Trajectory(t, np.array([(m.x, m.y, m.theta) for m in gt]))
-    rb = [m for m in ds.messages([RangeBearing]) if t[0] <= m.t <= t[-1]]
-    p = poses.interpolate(np.array([m.t for m in rb]))
-    lm = np.array([ds.metadata["landmarks"][str(m.landmark_id)] for m in rb])
-    d = lm - p[:, :2]
-    rng_err = np.hypot(d[:, 0], d[:, 1]) - np.array([m.range_m for m in rb])
-    brg = np.arctan2(d[:, 1], d[:, 0]) - p[:, 2] - np.array([m.bearing_rad for m in rb])
-    brg_err = np.angle(np.exp(1j * brg))
+    _, rng_err, brg_err = _measurement_errors(ds7_robot1)
     assert np.median(np.abs(rng_err)) < 0.1
     assert np.median(np.abs(brg_err)) < 0.05
 
@@ -258,9 +248,9 @@ def test_dataset7_robot1_full_import(tmp_path, ds7_robot1):
     assert_same_messages(list(trial.messages()), list(ds7_robot1.messages()))
 
 
-def _range_and_turn_errors(ds) -> tuple[float, float]:
-    """rms of range − true range [m] (bearing within 0.15 rad of the truth: right ID),
-    and of the odometry's heading change over 0.5 s windows − the true one [rad]."""
+def _measurement_errors(ds) -> tuple[Trajectory, np.ndarray, np.ndarray]:
+    """The ground truth, and for each range-bearing measurement within its time span the
+    range and bearing (wrapped) predicted from the true pose and landmark minus it."""
     gt = list(ds.messages([GroundTruthPose]))
     t = np.array([m.t for m in gt])
     truth = Trajectory(t, np.array([(m.x, m.y, m.theta) for m in gt]))
@@ -268,9 +258,17 @@ def _range_and_turn_errors(ds) -> tuple[float, float]:
     p = truth.interpolate(np.array([m.t for m in rb]))
     lm = np.array([ds.metadata["landmarks"][str(m.landmark_id)] for m in rb])
     d = lm - p[:, :2]
+    rng = np.hypot(d[:, 0], d[:, 1]) - np.array([m.range_m for m in rb])
     bearing = np.array([m.bearing_rad for m in rb])
     brg = np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0]) - p[:, 2] - bearing)))
-    rng = np.hypot(d[:, 0], d[:, 1]) - np.array([m.range_m for m in rb])
+    return truth, rng, brg
+
+
+def _range_and_turn_errors(ds) -> tuple[float, float]:
+    """rms of range − true range [m] (bearing within 0.15 rad of the truth: right ID),
+    and of the odometry's heading change over 0.5 s windows − the true one [rad]."""
+    truth, rng, brg = _measurement_errors(ds)
+    t = truth.t
     range_rms = float(np.sqrt(np.mean(rng[np.abs(brg) < 0.15] ** 2)))
     odo = np.array([(m.t, m.omega) for m in ds.messages([VelocityOdometry])])
     heading = np.r_[0.0, np.cumsum(odo[:-1, 1] * np.diff(odo[:, 0]))]
