@@ -3,8 +3,14 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
+LIVE_STAMP := $(VENV)/.installed-live-stamp
 
-.PHONY: install demo test test-fast bench lint format clean
+# Debian packages the live-path tests need: the AVR toolchain for the firmware, simavr
+# to run it, libfreenect (the Python binding builds against it; fakenect replays).
+DEB_PACKAGES := gcc-avr avr-libc binutils-avr simavr libsimavr-dev libelf-dev \
+                libfreenect-dev libfreenect-bin pkg-config
+
+.PHONY: install install-live system-deps firmware demo test test-fast bench lint format clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -14,16 +20,38 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
+# Installs the Debian packages that are missing (as root, or through sudo).
+system-deps:
+	@missing=""; for p in $(DEB_PACKAGES); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  if [ "$$(id -u)" = 0 ]; then sudo=""; else sudo="sudo"; fi; \
+	  $$sudo apt-get update -qq && \
+	  DEBIAN_FRONTEND=noninteractive $$sudo apt-get install -y -qq --no-install-recommends $$missing; \
+	fi
+
+$(LIVE_STAMP): $(STAMP) | system-deps
+	$(PY) -m pip install --quiet -e '.[dev,kinect]'
+	touch $(LIVE_STAMP)
+
+install-live: system-deps $(LIVE_STAMP)
+
+# The board firmware (hardware/firmware/build/walker_board.elf, .hex) and its simavr host.
+firmware: system-deps
+	$(MAKE) -C hardware/firmware
+
 demo: install
 	$(VENV)/bin/walkerslam demo --out out/demo
 
-test: install
+test: install-live firmware
 	$(PY) -m pytest -q
 
-test-fast: install
+test-fast: install-live firmware
 	$(PY) -m pytest -q -m "not slow"
 
-bench: install
+bench: install-live firmware
 	$(PY) benchmarks/run_all.py
 
 lint: install
@@ -35,4 +63,4 @@ format: install
 	$(PY) -m ruff check --fix .
 
 clean:
-	rm -rf $(VENV) out build *.egg-info .pytest_cache .ruff_cache
+	rm -rf $(VENV) out build *.egg-info .pytest_cache .ruff_cache hardware/firmware/build

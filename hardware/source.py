@@ -1,0 +1,76 @@
+"""The source and sink contract: where messages come from and where brake commands go.
+
+A **source** has the walker's calibration, its metadata ({name: dict}, strict JSON, as a
+trial log stores it), an iterator of messages in time order, and `close()`. A trial
+log (`hardware.log.TrialLog`), a public dataset (`hardware.datasets.Dataset`), the
+simulator (`hardware.sim.simulator.Simulator`) and every live device (the serial board,
+the depth and tag cameras) are sources; several merge by timestamp
+(`hardware.messages.merge`, or `hardware.live.LiveSources` for devices that deliver in
+real time).
+
+A **timed source** also runs on a clock that the closed loop advances: `poll(until)`
+returns the messages up to `until` on its clock, and `done` says it has ended. The
+simulator steps its physics to `until`; a set of live devices waits until the host
+clock reaches `until` and returns what arrived.
+
+A **command sink** takes brake commands: the serial board live, the simulator in
+simulation (`send` sets its brakes), a recorder in replay.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any, Protocol, runtime_checkable
+
+from hardware.calibration import WalkerCalibration
+from hardware.messages import BrakeCommand, Message
+
+
+@runtime_checkable
+class Source(Protocol):
+    """Messages in time order, with the calibration and metadata they were taken with."""
+
+    @property
+    def calibration(self) -> WalkerCalibration: ...
+
+    @property
+    def metadata(self) -> dict[str, Any]: ...
+
+    def messages(self) -> Iterator[Message]:
+        """The messages in time order (a recorded source may be iterated again)."""
+        ...
+
+    def close(self) -> None:
+        """Release the source; a live source's `messages()` iterator then ends."""
+        ...
+
+
+@runtime_checkable
+class TimedSource(Source, Protocol):
+    """A source the closed loop runs in time (the simulator, live devices)."""
+
+    @property
+    def t(self) -> float:
+        """The source's clock [s]: everything up to it has been delivered."""
+        ...
+
+    @property
+    def done(self) -> bool:
+        """The source has ended (the simulated user finished, a live run was stopped)."""
+        ...
+
+    def poll(self, until: float) -> list[Message]:
+        """Advance the clock to `until` (or until done) and return the messages that fell
+        due, in time order."""
+        ...
+
+
+@runtime_checkable
+class CommandSink(Protocol):
+    """Takes brake commands (torque per wheel, N·m)."""
+
+    def send(self, cmd: BrakeCommand) -> None: ...
+
+    def close(self) -> None:
+        """Release: a live sink sends zero brake torque before it lets go."""
+        ...
