@@ -3,7 +3,8 @@
 `Pipeline.feed(msg)` is the whole data path: every message goes to the localizer; depth
 frames and laser scans go to the mapper at the localizer's current pose (and, when
 ground truth is known, to a reference mapper at the true pose, so the two maps can be
-compared). `run_closed_loop` adds the controller and the brake sink around a simulator.
+compared). `run_closed_loop` adds the controller and the brake sink around a timed
+source (`hardware.source`: the simulator, or live devices).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from hardware.messages import (
     Message,
     VelocityOdometry,
 )
+from hardware.source import CommandSink, TimedSource
 from mapping.mapper import MapperConfig, OccupancyMapper
 from slam.base import Localizer
 from slam.trajectory import Trajectory
@@ -170,65 +172,106 @@ class VelocityEstimator:
 
 @dataclass(frozen=True)
 class LoopConfig:
-    """Closed-loop timing: the controller runs at rate_hz; its command reaches the brakes
-    latency_s later (computation + serial + brake driver). Every command passes through
-    the safety layer configured by `safety` (control.safety). With a smoother (a
-    localizer that revises the past), the map the controller reads is rebuilt along the
-    smoothed trajectory every map_rebuild_s of trial time when the past has changed
-    (0: only at the end), so the corrections reach the controller, not just the report.
-    A rebuild re-maps every kept frame (~0.7 ms each): every 10 s costs about as much as
-    the rest of the loop on a 90 s GTSAM trial; every 2 s, 4× more."""
+    """Closed-loop timing.
+
+    trigger "timer": the controller runs at rate_hz of the source's clock. "frame": it
+    runs right after each depth frame or scan reaches the map (the live walker's lowest
+    frame-to-command latency), and at rate_hz only while no frame comes (so the safety
+    layer's stale ramp still runs when the camera stalls).
+    latency_s: the command reaches the brakes this much later (computation + serial +
+    brake driver) — a simulated delay; a live run has the real one and uses 0.
+    Every command passes through the safety layer configured by `safety`
+    (control.safety). With a smoother (a localizer that revises the past), the map the
+    controller reads is rebuilt along the smoothed trajectory every map_rebuild_s of
+    trial time when the past has changed (0: only at the end), so the corrections reach
+    the controller, not just the report. A rebuild re-maps every kept frame (~0.7 ms
+    each): every 10 s costs about as much as the rest of the loop on a 90 s GTSAM trial;
+    every 2 s, 4× more."""
 
     rate_hz: float = 10.0
     latency_s: float = 0.03
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     map_rebuild_s: float = 10.0
+    trigger: str = "timer"
+
+    def __post_init__(self) -> None:
+        if self.trigger not in ("timer", "frame"):
+            raise ValueError(f"trigger must be 'timer' or 'frame', got {self.trigger!r}")
+        if not self.rate_hz > 0 or self.latency_s < 0:
+            raise ValueError("LoopConfig needs rate_hz > 0 and latency_s >= 0")
+
+
+class FeedOrder:
+    """Writes each message the loop fed to a trial log with a log time that never goes
+    back (the later of its own time and the previous log time), so that a replay, which
+    reads in log-time order, feeds them in the order the run did — also when a live
+    device delivered a message later than one of another stream."""
+
+    def __init__(self, writer) -> None:
+        self.writer = writer
+        self.last = 0.0
+
+    def __call__(self, msg: Message) -> None:
+        self.last = max(self.last, msg.t)
+        self.writer.write(msg, log_time=self.last)
 
 
 def run_closed_loop(
-    sim,
+    source: TimedSource,
+    sink: CommandSink,
     pipeline: Pipeline,
     controller: Controller,
     loop: LoopConfig = LoopConfig(),
-    sink: Callable[[Message], None] | None = None,
+    record: Callable[[Message], None] | None = None,
     progress: Callable[[float], None] | None = None,
+    on_command: Callable[[BrakeCommand, DepthFrame | LaserScan | None], None] | None = None,
 ) -> None:
-    """Run a simulator in closed loop until it is done.
+    """Run a timed source (the simulator, live devices) in closed loop until it is done.
 
-    Each tick: advance the simulator, feed its messages through the pipeline, compute a
-    brake command from the localizer's pose and the shared map, pass it through the
-    safety layer (unless `controller` already is a SafeController) and apply it after
-    the latency. The controller sees the torques of the last applied command and the
-    times of the latest localizer update, depth frame / scan and odometry message the
-    pipeline has received. Every message and command also goes to `sink` (e.g. a log
-    writer).
+    Each control step: feed the source's messages up to the step through the pipeline,
+    compute a brake command from the localizer's pose and the shared map, pass it
+    through the safety layer (unless `controller` already is a SafeController) and send
+    it to `sink` after the latency. The controller sees the torques of the last applied
+    command and the times of the latest localizer update, depth frame / scan and
+    odometry message the pipeline has received. Every message and command also goes to
+    `record` (e.g. a `FeedOrder` around a log writer); `on_command(cmd, frame)` is
+    called after each command is sent, with the frame that triggered it (None for a
+    timer step).
     """
     period = 1.0 / loop.rate_hz
+    on_frame = loop.trigger == "frame"
     velocity = VelocityEstimator()
     if not isinstance(controller, SafeController):
         controller = SafeController(controller, pipeline.calibration, loop.safety)
     off = pipeline.calibration.brake.torque_off_nm
     applied = (off, off)
     latest = {"map": -math.inf, "sensor": -math.inf}
-    k = 0
+    k = 1  # timer trigger: step k is at k·period
+    next_step = period  # frame trigger: the timer step if no frame comes first
     rebuilt_at = 0.0
 
-    def advance(t: float) -> None:
-        for msg in sim.step_until(t):
+    def advance(until: float, stop_at_frame: bool = False) -> DepthFrame | LaserScan | None:
+        frame = None
+        for msg in source.poll(until, stop_at_frame):
             pipeline.feed(msg)
             if isinstance(msg, DepthFrame | LaserScan):
                 latest["map"] = msg.t
+                frame = msg
             elif isinstance(msg, EncoderTicks | VelocityOdometry):
                 latest["sensor"] = msg.t
-            if sink is not None:
-                sink(msg)
+            if record is not None:
+                record(msg)
+        return frame
 
-    while not sim.done:
-        k += 1
-        t = k * period
-        advance(t)
-        if sim.done:
+    while not source.done:
+        until = next_step if on_frame else k * period
+        frame = advance(until, on_frame)
+        if source.done:
             break
+        t = frame.t if on_frame and frame is not None else until
+        # a live loop that fell behind its clock skips the steps it missed
+        k = max(k + 1, math.floor(source.t / period) + 1)
+        next_step = t + period
         if loop.map_rebuild_s > 0 and t - rebuilt_at >= loop.map_rebuild_s:
             pipeline.rebuild_map()
             rebuilt_at = t
@@ -247,10 +290,13 @@ def run_closed_loop(
         )
         cmd = controller.command(inp)
         pipeline.feed(cmd)
-        if sink is not None:
-            sink(cmd)
-        advance(t + loop.latency_s)
-        sim.apply(cmd)
+        if record is not None:
+            record(cmd)
+        if loop.latency_s > 0:
+            advance(t + loop.latency_s)
+        sink.send(cmd)
         applied = (cmd.left_nm, cmd.right_nm)
+        if on_command is not None:
+            on_command(cmd, frame)
         if progress is not None:
-            progress(sim.t)
+            progress(source.t)

@@ -22,13 +22,12 @@ from control.base import CONTROLLERS
 from experiments import drag
 from experiments import metrics as M
 from experiments.drag import DragConfig
-from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
-from experiments.studies.settings import SOURCE_SETTINGS, build_config, source_settings
+from experiments.pipeline import FeedOrder, LoopConfig, Pipeline, run_closed_loop
+from experiments.studies.settings import build_config, source_settings
 from hardware.datasets import Dataset
 from hardware.log import LogWriter, TrialLog, read_log
 from hardware.registry import UnknownNameError
 from hardware.sim.simulator import SimConfig, Simulator
-from hardware.sim.slip import proposed_localizer_settings
 from hardware.sim.world import World, load_world
 from mapping.export import save_map_server, save_png
 from mapping.mapper import MapperConfig
@@ -76,9 +75,8 @@ def simulate_trial(
     cal = sim.calibration
     # The trial proposes its simulated encoders' noise to every later replay; the live
     # localizer takes it too, so a live run and its replay are the same run.
-    proposed = {SOURCE_SETTINGS: proposed_localizer_settings(cfg.surface)}
     loc_cfg = build_config(
-        LOCALIZERS, localizer, source_settings(LOCALIZERS, localizer, proposed).items()
+        LOCALIZERS, localizer, source_settings(LOCALIZERS, localizer, sim.metadata).items()
     )
     loc = create(localizer, cal, loc_cfg, initial_pose=world.start_pose)
     ctl_spec = CONTROLLERS.spec(controller)
@@ -99,9 +97,9 @@ def simulate_trial(
     out_path.parent.mkdir(parents=True, exist_ok=True)
     pipeline = Pipeline(loc, cal, reference_map=False)
     t0 = time.perf_counter()
-    metadata = {"config": config, "world": world.to_dict(), **proposed}
+    metadata = {"config": config, **sim.metadata}
     with LogWriter(out_path, cal, metadata=metadata) as log:
-        run_closed_loop(sim, pipeline, ctl, loop, sink=log.write, progress=progress)
+        run_closed_loop(sim, sim, pipeline, ctl, loop, record=FeedOrder(log), progress=progress)
     return SimulateResult(
         out_path,
         sim.t,

@@ -71,11 +71,11 @@ def straight_push(
     off = cal.brake.torque_off_nm
     left = on if brakes in ("left", "both") else off
     right = on if brakes in ("right", "both") else off
-    sim.apply(BrakeCommand(0.0, left, right, "slip-push"))
+    sim.send(BrakeCommand(0.0, left, right, "slip-push"))
     dr = create("dead-reckoning", cal, initial_pose=world.start_pose)
     t_truth, truth = [], []
     while not sim.done and sim.state.x < length_m:
-        for msg in sim.step_until(sim.t + 0.1):
+        for msg in sim.poll(sim.t + 0.1):
             dr.process(msg)
             if isinstance(msg, GroundTruthPose):
                 t_truth.append(msg.t)

@@ -48,6 +48,7 @@ command stream). A topic holds a single message type.
     /groundtruth/pose        GroundTruthPose    protobuf / foxglove.PoseInFrame
     /groundtruth/pose/exact    companion        json / walker.GroundTruthPoseExact
     /collisions              Collision          json / walker.Collision
+    /events                  DeviceEvent        json / walker.DeviceEvent
 
 JSON channels have schema encoding "jsonschema"; protobuf channels carry the
 FileDescriptorSet of the Foxglove schema (schema encoding "protobuf").
@@ -58,9 +59,13 @@ trailing "/image" replaced by "/camera_info" (else T + "/camera_info"). Each com
 channel has channel metadata {"main_topic": T}, and its message is written just before
 the main message with the same log time; the camera info goes with every frame.
 
-Times: log_time = publish_time = round(t * 1e9) ns, so t must be finite and >= 0. The
-float t itself is stored exactly in every JSON payload ("t"), for Foxglove messages in
-the exact companion (their protobuf timestamp holds the same ns).
+Times: publish_time = round(t * 1e9) ns, so t must be finite and >= 0; log_time is the
+same unless the writer was given the time the message was recorded (a live recorder
+stores the time it fed each message to the pipeline, never earlier than t, so that a
+replay in log-time order feeds them in the live run's order; a message's companions
+share its log time). The float t itself is stored exactly in every JSON payload ("t"),
+for Foxglove messages in the exact companion (their protobuf timestamp holds the same
+ns as publish_time).
 
 JSON payloads: compact UTF-8 objects; floats are written with Python's shortest
 round-trip repr, so they read back bit-exactly; non-finite floats, which JSON lacks, are
@@ -74,6 +79,8 @@ JSON integers. Units are SI. Schemas (all fields required):
     walker.VelocityOdometry   t [s], v [m/s forward], omega [rad/s yaw rate]
     walker.Collision          t [s], kind ["front" | "side" | "rear-wheel"], obstacle [str],
                               x, y [m, contact point in the world]
+    walker.DeviceEvent        t [s], device [str], event [str: connected | disconnected |
+                              reconnected | reset | stalled | resumed], detail [str]
     walker.TagDetections      t [s], detections: list of {tag_id [int],
                               camera_T_tag [16 numbers: the 4×4 transform, row-major, m],
                               corners_px [8 numbers: u0, v0, ..., u3, v3, px],
@@ -159,6 +166,7 @@ from hardware.messages import (
     CameraIntrinsics,
     Collision,
     DepthFrame,
+    DeviceEvent,
     EncoderTicks,
     GroundTruthPose,
     LaserScan,
@@ -261,7 +269,7 @@ def _proto_schema(cls: Any) -> _Schema:
     return _Schema(cls.DESCRIPTOR.full_name, "protobuf", "protobuf", data)
 
 
-T_PROP = _prop("number", "time [s], exact; the log time is round(t*1e9) ns")
+T_PROP = _prop("number", "time [s], exact; the publish time is round(t*1e9) ns")
 _NUMBERS = {"type": "number"}
 
 # Flat JSON messages: type -> (default topic, {field: description}); fields follow the dataclass.
@@ -297,6 +305,14 @@ _FLAT: dict[type, tuple[str, dict[str, str]]] = {
             "obstacle": "obstacle name",
             "x": "contact point x [m, world]",
             "y": "contact point y [m, world]",
+        },
+    ),
+    DeviceEvent: (
+        "/events",
+        {
+            "device": "the device: 'board', 'depth', 'tags'",
+            "event": "connected, disconnected, reconnected, reset, stalled, resumed",
+            "detail": "what happened, in words",
         },
     ),
 }
@@ -528,12 +544,18 @@ class LogWriter:
             self._thread = threading.Thread(target=self._flush_loop, name="LogWriter", daemon=True)
             self._thread.start()
 
-    def write(self, msg: Message, topic: str | None = None) -> None:
-        """Log one message on `topic` (default: the type's topic, see TOPICS)."""
+    def write(self, msg: Message, topic: str | None = None, log_time: float | None = None) -> None:
+        """Log one message on `topic` (default: the type's topic, see TOPICS).
+
+        log_time [s]: when the message was recorded, default its own time `t`. A live
+        recorder gives the time it handed the message to the pipeline (never earlier
+        than t), so a replay, which reads in log-time order, feeds the messages in the
+        order the live run did."""
         if type(msg) not in TOPICS:
             raise TypeError(f"cannot log a {type(msg).__name__}")
         topic = topic or TOPICS[type(msg)]
         ns = _ns(msg.t)
+        log_ns = ns if log_time is None else _ns(log_time)
         parts = _encode(msg, topic, ns)  # encode outside the lock
         with self._lock:
             if self._closed:
@@ -541,7 +563,7 @@ class LogWriter:
             channels = [self._channel(part_topic, schema, topic) for part_topic, schema, _ in parts]
             for channel, (_, _, data) in zip(channels, parts, strict=True):
                 seq = self._sequence[channel] = (self._sequence[channel] + 1) & 0xFFFFFFFF
-                self._mcap.add_message(channel, ns, data, ns, seq)
+                self._mcap.add_message(channel, log_ns, data, ns, seq)
             self.message_count += 1
             t = float(msg.t)
             if self._unflushed_t0 is None:
@@ -808,7 +830,8 @@ def _messages_in(opcode: int, body: bytes, validate: bool = False) -> tuple[list
 
 
 class TrialLog:
-    """A trial log opened for replay: calibration, metadata, attachments and messages.
+    """A trial log opened for replay: calibration, metadata, attachments and messages; a
+    message source (`hardware.source.Source`).
 
     Opening scans the whole file once (without needing its summary), so problems are
     reported here: `LogError` for files that cannot be used, `LogRecoveryWarning` for a
@@ -897,6 +920,9 @@ class TrialLog:
 
     def __iter__(self) -> Iterator[Message]:
         return self.messages()
+
+    def close(self) -> None:
+        """Nothing to release: every `messages()` iteration opens the file itself."""
 
     # -- scanning
 

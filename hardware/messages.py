@@ -159,6 +159,24 @@ class Collision:
     y: float
 
 
+@dataclass(frozen=True, slots=True)
+class DeviceEvent:
+    """Something a live device did that a reader of the log must know about.
+
+    device names it ("board", "depth", "tags"); event is one of
+    "connected", "disconnected" (the port went away: a gap in its streams starts),
+    "reconnected" (the gap ends), "reset" (the board restarted: its counters restarted,
+    the driver re-based them so odometry continues without a jump), "stalled" /
+    "resumed" (a stream stopped delivering for longer than its stale limit and came
+    back); detail says more in words (counts, reasons).
+    """
+
+    t: float
+    device: str
+    event: str
+    detail: str = ""
+
+
 Message = (
     EncoderTicks
     | BrakeCommand
@@ -169,6 +187,7 @@ Message = (
     | LaserScan
     | GroundTruthPose
     | Collision
+    | DeviceEvent
 )
 
 MESSAGE_TYPES: tuple[type, ...] = (
@@ -181,6 +200,7 @@ MESSAGE_TYPES: tuple[type, ...] = (
     LaserScan,
     GroundTruthPose,
     Collision,
+    DeviceEvent,
 )
 
 

@@ -25,6 +25,11 @@ from typing import Any, Protocol, runtime_checkable
 from hardware.calibration import WalkerCalibration
 from hardware.messages import BrakeCommand, Message
 
+# The metadata record in which a source proposes localizer settings ({config field path:
+# value}), e.g. a dataset's fitted noise levels or a simulated trial's encoder noise;
+# replay applies them before the user's --set (experiments.studies.settings).
+PROPOSED_SETTINGS = "localizer_settings"
+
 
 @runtime_checkable
 class Source(Protocol):
@@ -59,9 +64,10 @@ class TimedSource(Source, Protocol):
         """The source has ended (the simulated user finished, a live run was stopped)."""
         ...
 
-    def poll(self, until: float) -> list[Message]:
+    def poll(self, until: float, stop_at_frame: bool = False) -> list[Message]:
         """Advance the clock to `until` (or until done) and return the messages that fell
-        due, in time order."""
+        due, in time order. stop_at_frame: return early, as soon as a depth frame or a
+        laser scan is among them (a frame-triggered control loop)."""
         ...
 
 

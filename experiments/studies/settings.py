@@ -15,6 +15,7 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from hardware.registry import Registry
+from hardware.source import PROPOSED_SETTINGS
 
 
 def _field_types(config_type: type) -> dict[str, Any]:
@@ -123,7 +124,7 @@ def build_config(registry: Registry, name: str, overrides: Iterable[tuple[str, A
     return cfg
 
 
-SOURCE_SETTINGS = "localizer_settings"
+SOURCE_SETTINGS = PROPOSED_SETTINGS
 
 
 def source_settings(registry: Registry, name: str, metadata: Mapping[str, Any]) -> dict[str, Any]:

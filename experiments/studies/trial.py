@@ -21,7 +21,7 @@ import numpy as np
 
 from control.base import CONTROLLERS
 from experiments import metrics as M
-from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
+from experiments.pipeline import FeedOrder, LoopConfig, Pipeline, run_closed_loop
 from experiments.run import MAP_BAND_M, VERSION
 from experiments.studies.settings import SOURCE_SETTINGS, build_config, source_settings
 from hardware.log import LogWriter
@@ -164,9 +164,9 @@ def run_trial(spec: RunSpec) -> dict[str, Any]:
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = {"config": config, "world": world.to_dict(), **proposed_settings(spec)}
         with LogWriter(path, cal, metadata=meta) as log:
-            run_closed_loop(sim, pipeline, ctl, loop, sink=log.write)
+            run_closed_loop(sim, sim, pipeline, ctl, loop, record=FeedOrder(log))
     else:
-        run_closed_loop(sim, pipeline, ctl, loop)
+        run_closed_loop(sim, sim, pipeline, ctl, loop)
     wall = time.perf_counter() - t0
 
     rec = pipeline.recorded

@@ -63,7 +63,8 @@ StreamFactory = Callable[[], Iterable[Message]]
 
 @dataclass(eq=False)
 class Dataset:
-    """An opened dataset: a time-ordered message source with calibration and metadata.
+    """An opened dataset: a time-ordered message source with calibration and metadata
+    (`hardware.source.Source`).
 
     `streams` maps each message type to a factory of that stream in time order (each
     call starts it afresh, so `messages()` can be iterated any number of times).
@@ -80,6 +81,9 @@ class Dataset:
         wanted = None if types is None else set(types)
         sources = [f() for t, f in self.streams.items() if wanted is None or t in wanted]
         return merge(*sources)
+
+    def close(self) -> None:
+        """Nothing to release: the streams re-read the files on every `messages()`."""
 
     @property
     def initial_pose(self) -> tuple[float, float, float]:

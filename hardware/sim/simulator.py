@@ -1,16 +1,20 @@
 """The simulated walker as a source of messages and a sink of brake commands.
 
-`Simulator.step_until(t)` integrates the dynamics at the physics rate and returns the
+The simulator is a timed source and a command sink (`hardware.source`):
+`Simulator.poll(t)` integrates the dynamics at the physics rate up to t and returns the
 sensor messages that fell due (encoder ticks, depth frames, tag detections, ground truth,
-collisions); `Simulator.apply(cmd)` sets the brake command (quantised to the board's PWM
-as the real brakes are). The closed loop (localizer, mapper, controller) is run by
-`experiments.pipeline`, exactly as with live hardware.
+collisions); `Simulator.send(cmd)` sets the brake command (quantised to the board's PWM
+as the real brakes are); `messages()` runs it open loop to the end. The closed loop
+(localizer, mapper, controller) is run by `experiments.pipeline`, exactly as with live
+hardware.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -27,10 +31,16 @@ from hardware.messages import (
 )
 from hardware.sim.depth_camera import DepthCameraConfig, SimDepthCamera
 from hardware.sim.dynamics import Brakes, WalkerParams, WalkerState, step
-from hardware.sim.slip import Encoders, SlipModel, surface_coefficient
+from hardware.sim.slip import (
+    Encoders,
+    SlipModel,
+    proposed_localizer_settings,
+    surface_coefficient,
+)
 from hardware.sim.tag_camera import SimTagCamera, TagCameraConfig
 from hardware.sim.user import ConstantPush, RouteFollower, UserParams, UserProfile
 from hardware.sim.world import COLLISION_BAND_M, World
+from hardware.source import PROPOSED_SETTINGS
 
 # Walker parts in the walker frame (x forward, y left; rear-axle origin): the frame is
 # 0.56 m wide and 0.74 m long; the rear wheels stick out 6.5 cm beyond it on each side
@@ -139,6 +149,7 @@ class Simulator:
         self.tag_camera = SimTagCamera(world, self.calibration, config.tags, rng_tags)
         self.dt = 1.0 / config.physics_rate_hz
         self.steps = 0
+        self._started = False  # the sensors at t = 0 were returned
         self._every = {
             name: config.physics_rate_hz // getattr(config, f"{name}_rate_hz")
             for name in ("encoder", "depth", "tag", "groundtruth")
@@ -156,23 +167,48 @@ class Simulator:
     def done(self) -> bool:
         return self.user.finished or self.t >= self.config.duration_s - 1e-9
 
+    @property
+    def metadata(self) -> dict[str, Any]:
+        """The world with its true obstacles and tags, the simulation config, and the
+        odometry noise of the simulated encoders that the trial proposes to localizers."""
+        return {
+            "world": self.world.to_dict(),
+            "sim": self.config.to_dict(),
+            PROPOSED_SETTINGS: proposed_localizer_settings(self.config.surface),
+        }
+
     def pose(self) -> np.ndarray:
         return np.array([self.state.x, self.state.y, self.state.phi])
 
-    def apply(self, cmd: BrakeCommand) -> None:
+    def send(self, cmd: BrakeCommand) -> None:
         """Set the brake command; torques pass through the board's PWM quantisation."""
         cal = self.calibration.brake
         self.brakes.set_command(cal.torque(cal.pwm(cmd.left_nm)), cal.torque(cal.pwm(cmd.right_nm)))
 
-    def step_until(self, t_end: float) -> list[Message]:
-        """Advance to t_end (or until done) and return the messages that fell due."""
+    def poll(self, until: float, stop_at_frame: bool = False) -> list[Message]:
+        """Advance to `until` (or until done) and return the messages that fell due;
+        stop_at_frame: stop after the physics step that produced a depth frame."""
         out: list[Message] = []
-        if self.steps == 0:
+        if self.steps == 0 and not self._started:
+            self._started = True
             out.extend(self._sensors(first=True))
-        while self.t + 0.5 * self.dt < t_end and not self.done:
+            if stop_at_frame:
+                return out  # the first depth frame is among them
+        while self.t + 0.5 * self.dt < until and not self.done:
             self._physics_step(out)
-            out.extend(self._sensors())
+            sensors = self._sensors()
+            out.extend(sensors)
+            if stop_at_frame and any(isinstance(m, DepthFrame) for m in sensors):
+                break
         return out
+
+    def messages(self, step_s: float = 0.1) -> Iterator[Message]:
+        """Run open loop (the brakes as last sent) to the end, `step_s` at a time."""
+        while not self.done:
+            yield from self.poll(self.t + step_s)
+
+    def close(self) -> None:
+        """Nothing to release."""
 
     # -- internals --------------------------------------------------------------------
     def _physics_step(self, out: list[Message]) -> None:

@@ -70,7 +70,7 @@ def test_closed_loop_reaches_the_commanded_radius(radius, push):
     pipe = pipeline_for(sim)
     settling = {"mass_kg": 31.5, "yaw_inertia": 8.69, "handle_filter_s": 0.3}
     ctl = FixedRadius(true_model(sim, **settling), sim.calibration, radius)
-    run_closed_loop(sim, pipe, ctl)
+    run_closed_loop(sim, sim, pipe, ctl)
     t, r = window_radii(pipe)
     late = r[t >= 8.0]
     # measured: within 2 % of the radius in every 0.5 s window after 4 s
@@ -91,7 +91,7 @@ def test_thesis_form_of_the_estimate_does_not_settle():
     sim = open_floor(16.0, (15.0, 15.0))
     pipe = pipeline_for(sim)
     cfg = true_model(sim, mass_kg=0.0, yaw_inertia=0.0, handle_filter_s=0.0)
-    run_closed_loop(sim, pipe, FixedRadius(cfg, sim.calibration, 2.0))
+    run_closed_loop(sim, sim, pipe, FixedRadius(cfg, sim.calibration, 2.0))
     t, r = window_radii(pipe)
     late = r[t >= 8.0]
     assert late.max() / late.min() > 1.5
@@ -121,8 +121,8 @@ class DropDepth:
     def __getattr__(self, name):
         return getattr(self.sim, name)
 
-    def step_until(self, t):
-        msgs = self.sim.step_until(t)
+    def poll(self, t, stop_at_frame=False):
+        msgs = self.sim.poll(t, stop_at_frame)
         return [m for m in msgs if not (isinstance(m, DepthFrame) and m.t > self.after_s)]
 
 
@@ -130,7 +130,7 @@ def test_run_closed_loop_passes_applied_torques_and_data_times():
     sim = open_floor(3.0, (15.0, 15.0))
     pipe = pipeline_for(sim)
     rec = Recorder(10.0, 1.0)  # 10 N·m is beyond the brake: the safety layer clamps it
-    run_closed_loop(sim, pipe, rec)
+    run_closed_loop(sim, sim, pipe, rec)
     cmds = pipe.recorded.commands
     off, full = sim.calibration.brake.torque_off_nm, sim.calibration.brake.torque_max_nm
     assert len(rec.inputs) == len(cmds) > 20
@@ -152,7 +152,7 @@ def test_stale_map_ramps_the_brakes_off_in_closed_loop():
     pipe = pipeline_for(sim)
     rec = Recorder(2.0, 2.0)
     loop = LoopConfig(safety=SafetyConfig(max_data_age_s=0.25, ramp_time_s=0.5))
-    run_closed_loop(DropDepth(sim, after_s=2.0), pipe, rec, loop)
+    run_closed_loop(DropDepth(sim, after_s=2.0), sim, pipe, rec, loop)
     by_t = {round(c.t, 1): c for c in pipe.recorded.commands}
     assert by_t[2.0].left_nm == 2.0 and by_t[2.2].left_nm == 2.0  # map 0.2 s old: fine
     # 0.3 s old at t = 2.3: ramp from 2.0 to the residual torque over 0.5 s
@@ -183,7 +183,7 @@ def test_safety_layer_leaves_open_loop_unchanged_on_fresh_data():
     cal = sim.calibration
     pipe = Pipeline(create("dead-reckoning", cal, initial_pose=world.start_pose), cal, None, False)
     ctl = Compare(create_controller("open-loop", cal), cal)
-    run_closed_loop(sim, pipe, ctl)
+    run_closed_loop(sim, sim, pipe, ctl)
     braking = [raw for raw, _ in ctl.pairs if max(raw) > cal.brake.torque_off_nm]
     assert len(braking) > 50
     assert all(raw == (out.left_nm, out.right_nm) for raw, out in ctl.pairs)
@@ -195,7 +195,7 @@ def test_new_controllers_run_on_the_course(name):
     sim = Simulator(world, SimConfig(seed=2, duration_s=15.0, surface="dusty"))
     cal = sim.calibration
     pipe = Pipeline(create("dead-reckoning", cal, initial_pose=world.start_pose), cal, None, False)
-    run_closed_loop(sim, pipe, create_controller(name, cal))
+    run_closed_loop(sim, sim, pipe, create_controller(name, cal))
     cmds = pipe.recorded.commands
     off, full = cal.brake.torque_off_nm, cal.brake.torque_max_nm
     assert len(cmds) >= 140 and all(c.source == name for c in cmds)
@@ -217,6 +217,7 @@ def test_closed_loop_rebuilds_a_smoothers_map_during_the_run(tmp_path):
             calls.append(original()) or calls[-1]
         )
         run_closed_loop(
+            sim,
             sim,
             pipeline,
             create_controller("open-loop", sim.calibration),

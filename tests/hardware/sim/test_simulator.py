@@ -11,7 +11,7 @@ from hardware.sim.world import load_world
 
 def run(seconds, seed=4, **cfg):
     sim = Simulator(load_world("thesis-course"), SimConfig(seed=seed, **cfg))
-    msgs = sim.step_until(seconds)
+    msgs = sim.poll(seconds)
     return sim, msgs
 
 

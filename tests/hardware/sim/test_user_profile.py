@@ -13,11 +13,7 @@ from hardware.sim.world import load_world
 
 def truth(sim, seconds):
     return np.array(
-        [
-            (m.t, m.x, m.y, m.theta)
-            for m in sim.step_until(seconds)
-            if isinstance(m, GroundTruthPose)
-        ]
+        [(m.t, m.x, m.y, m.theta) for m in sim.poll(seconds) if isinstance(m, GroundTruthPose)]
     )
 
 
