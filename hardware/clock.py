@@ -107,12 +107,16 @@ class ClockMap:
             t_ref, off, drift = self._fit
             return off + drift * (device_t - t_ref)
 
-    def to_host(self, device_t: float) -> float:
-        """Host time of `device_t`; never earlier than a previous answer (a refit must
-        not send a stream's time backwards)."""
+    def to_host(self, device_t: float, not_after: float | None = None) -> float:
+        """Host time of `device_t`, at most `not_after` (e.g. the report's arrival: a
+        report is not stamped later than it arrived, which an extrapolated drift could
+        otherwise do) and never earlier than a previous answer (a refit must not send a
+        stream's time backwards; this wins when the two conflict)."""
         if not self.ready:
             raise RuntimeError("ClockMap.to_host before any observation")
         t = device_t + self.offset_at(device_t)
+        if not_after is not None:
+            t = min(t, not_after)
         with self._lock:
             t = max(t, self._last_host)
             self._last_host = t
