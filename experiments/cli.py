@@ -28,10 +28,11 @@ err_console = Console(stderr=True)
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
+    from hardware.live import DeviceFault
     from hardware.log import LogError
     from hardware.registry import UnknownNameError
 
-    return (LogError, UnknownNameError, FileNotFoundError, ValueError)
+    return (LogError, UnknownNameError, FileNotFoundError, ValueError, DeviceFault)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -577,3 +578,4 @@ def info(log: Annotated[Path, typer.Argument(help="trial log (.mcap)")]) -> None
 
 
 __import__("experiments.study_commands").study_commands.register(app)  # course-study, corner-study
+__import__("experiments.live_commands").live_commands.register(app)  # live, board

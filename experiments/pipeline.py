@@ -268,7 +268,9 @@ def run_closed_loop(
         frame = advance(until, on_frame)
         if source.done:
             break
-        t = frame.t if on_frame and frame is not None else until
+        # the step's time: the timer's, or (frame trigger) the source's clock now — the
+        # frame's time in simulation, a little after it live
+        t = source.t if on_frame else until
         # a live loop that fell behind its clock skips the steps it missed
         k = max(k + 1, math.floor(source.t / period) + 1)
         next_step = t + period

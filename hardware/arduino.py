@@ -29,10 +29,11 @@ What it does with the board's lines (`hardware/firmware/PROTOCOL.md`):
 - **unplugging**: when the port disappears the driver emits DeviceEvent("board",
   "disconnected"), tries to reopen the same path every `reconnect_poll_s`, handshakes
   again and emits "reconnected" (the gap in the encoder stream is marked by the two
-  events in a recorded log). If the board did not reset meanwhile (a USB hiccup on an
-  externally powered board), its counts are continuous and the motion during the gap
-  is kept — it was measured; if it reset (an Uno powered by the USB cable does), the
-  counts are re-based and the localizer sees no motion rather than a jump.
+  events in a recorded log). Across the gap the counts are re-based, so the localizer
+  sees no motion rather than a jump: if the board restarted (an Uno powered by the USB
+  cable does) they restarted from zero; if it did not (an externally powered board, a
+  USB hiccup), what the wheels turned meanwhile is kept in a DeviceEvent "rebased" —
+  or, with `gap_motion="keep"`, integrated as one increment.
 - **brake commands**: `send` turns torques into PWM (calibration.brake) and writes a `B`
   line at once; while the command is non-zero a background thread re-sends it every
   1/resend_hz s (default 20 Hz), so the board's 300 ms command timeout stays fed only
@@ -75,7 +76,11 @@ class BoardConfig:
     how often to try. rate_hz: ask the board for this tick-report rate (None: its
     default). reset_on_open: pulse DTR on open (resets an Uno; ignored where DTR cannot
     be set). check_cpr: refuse firmware whose counts per revolution differ from the
-    calibration's.
+    calibration's. gap_motion: what the counts moved across a gap in the stream (the
+    port lost and back, the board still running): "drop" re-bases them, so the
+    localizer sees no motion rather than a jump (the count difference is kept in a
+    DeviceEvent "rebased"); "keep" integrates it as one increment (the wheels' turn, hence
+    the heading change, is exact; the path between is not).
     """
 
     baud: int = bp.BAUD
@@ -88,8 +93,11 @@ class BoardConfig:
     rate_hz: int | None = None
     reset_on_open: bool = False
     check_cpr: bool = True
+    gap_motion: str = "drop"
 
     def __post_init__(self) -> None:
+        if self.gap_motion not in ("drop", "keep"):
+            raise ValueError(f"gap_motion must be 'drop' or 'keep', got {self.gap_motion!r}")
         if not self.resend_hz >= 1.0 / bp.COMMAND_TIMEOUT_S * 2:
             raise ValueError(
                 f"resend_hz must be >= {2 / bp.COMMAND_TIMEOUT_S:.1f} (twice per board "
@@ -304,7 +312,8 @@ class ArduinoBoard:
         self._lost.clear()
 
     def _close_port(self) -> None:
-        s, self._serial = self._serial, None
+        with self._write_lock:  # not while another thread writes to it
+            s, self._serial = self._serial, None
         if s is not None:
             try:
                 s.close()
@@ -321,7 +330,8 @@ class ArduinoBoard:
                 if data.startswith(b"B"):
                     self.stats.commands_sent += 1
                 return True
-            except (serial.SerialException, OSError):
+            except (serial.SerialException, OSError, TypeError):
+                # TypeError: pyserial on a port the reader thread just found dead
                 self.stats.write_errors += 1
                 self._lost.set()
                 return False
@@ -362,6 +372,7 @@ class ArduinoBoard:
 
     def _try_reconnect(self) -> bool:
         """Reopen the port and handshake again; mark the end of the gap."""
+        before, t_open = len(self._pending), self._now_stamp()
         try:
             self._open_port()
             hs = self._handshake()
@@ -369,16 +380,18 @@ class ArduinoBoard:
             self._close_port()
             return False
         self.stats.reconnects += 1
-        gap = self._now_stamp() - (self._lost_at or 0.0)
+        gap = t_open - (self._lost_at or 0.0)
         self._lost_at = None
-        self._pending.append(
+        # before what the handshake read meanwhile (the first reports after the gap)
+        self._pending.insert(
+            before,
             DeviceEvent(
-                self._now_stamp(),
+                t_open,
                 self.device,
                 "reconnected",
                 f"after {gap:.2f} s (last tick seq {self._last_seq}; a 'reset' event "
                 f"follows if the board restarted meanwhile); " + self._describe(hs),
-            )
+            ),
         )
         return True
 
@@ -446,6 +459,8 @@ class ArduinoBoard:
                 self._on_reset(arrival, f"tick sequence went back ({self._last_seq} → {tick.seq})")
             elif ahead > 1 and not self._after_gap:
                 self.stats.seq_gaps += ahead - 1  # (reports lost while unplugged are not)
+        if self._after_gap and not self._reset_pending:
+            self._across_gap(tick, arrival)
         if self._last_t_us is not None and tick.t_us < self._last_t_us:
             self._t_epochs += 1  # the µs counter wrapped
         self._reset_pending = self._after_gap = False
@@ -457,6 +472,33 @@ class ArduinoBoard:
         self.stats.last_tick = tick
         t = self.clock_map.to_host(board_t, not_after=arrival)
         self._pending.append(EncoderTicks(t, left, right))
+
+    def _across_gap(self, tick: bp.Tick, arrival: float) -> None:
+        """The first report after a reconnection of a board that did not restart: its
+        clock may have wrapped unseen (the map starts afresh), and its counts moved by
+        what the wheels turned while nobody listened."""
+        self.clock_map.reset()
+        self._last_t_us, self._t_epochs = None, 0
+        raw = self._wheels.raw
+        if raw is None:
+            return
+        moved = [
+            ((new - old + (1 << 31)) % bp.UINT32) - (1 << 31)
+            for new, old in zip((tick.left, tick.right), raw, strict=True)
+        ]
+        if self.config.gap_motion == "drop":
+            self._wheels.rebase()
+            what = "not integrated: the localizer sees no motion across the gap"
+        else:
+            what = "integrated as one increment (gap_motion='keep')"
+        self._pending.append(
+            DeviceEvent(
+                arrival,
+                self.device,
+                "rebased" if self.config.gap_motion == "drop" else "gap-motion",
+                f"the wheels turned {moved[0]}, {moved[1]} counts during the gap; {what}",
+            )
+        )
 
 
 def _reason(e: BaseException) -> str:

@@ -132,18 +132,36 @@ def test_unplug_marks_the_gap_and_reconnects(emulator):
     wait_for(lambda: emulator.brake_outputs()[1:] == (0, 0), what="brakes released")
     emulator.set_counts(130, 125)  # the walker moved while unplugged
     emulator.replug()
-    wait_for(lambda: run.events("reconnected"), what="reconnected event")
-    wait_for(lambda: run.ticks()[-1].left == 130, what="counts after the gap")
+    wait_for(lambda: run.events("rebased"), what="the first report after the gap")
     # the host still wants braking: its re-sends apply it again after the reconnect
     wait_for(lambda: emulator.brake_outputs()[1] > 0, what="brakes applied again")
-    run.close()
     st = run.board.stats
     assert st.disconnects == 1 and st.reconnects == 1 and st.resets == 0
     assert st.seq_gaps == 0  # reports lost while unplugged are the gap, not errors
     ev = [m.event for m in run.events()]
-    assert ev == ["connected", "disconnected", "reconnected"]
-    # the board did not restart, so its counts were continuous: the motion is kept
+    assert ev == ["connected", "disconnected", "reconnected", "rebased"]
+    # the counts are re-based across the gap: no motion, no jump; what the wheels turned
+    # meanwhile is in the event
+    assert run.ticks()[-1].left == 100 and run.ticks()[-1].right == 100
+    assert "turned 30, 25 counts" in run.events("rebased")[0].detail
+    emulator.set_counts(140, 130)
+    wait_for(lambda: run.ticks()[-1].left == 110, what="counting on after the gap")
+    assert run.ticks()[-1].right == 105
+    run.close()
+
+
+def test_gap_motion_keep_integrates_what_the_wheels_turned(emulator):
+    run = Running(emulator.port, reconnect_poll_s=0.05, gap_motion="keep")
+    emulator.set_counts(100, 100)
+    wait_for(lambda: run.ticks() and run.ticks()[-1].left == 100)
+    emulator.unplug()
+    wait_for(lambda: run.events("disconnected"))
+    emulator.set_counts(130, 125)
+    emulator.replug()
+    wait_for(lambda: run.ticks()[-1].left == 130, what="counts after the gap")
     assert run.ticks()[-1].right == 125
+    assert "turned 30, 25 counts" in run.events("gap-motion")[0].detail
+    run.close()
 
 
 def test_brake_commands_are_resent_while_non_zero_and_zero_on_close(emulator):

@@ -1,0 +1,646 @@
+"""The live jobs behind `walkerslam live` and `walkerslam board`.
+
+`run_live(options)` puts a localizer and a braking controller on the walker: the serial
+board (`hardware.arduino`), the depth camera (`hardware.depth`) and the tag camera
+(`hardware.tags`) are live sources on one host clock, merged by `hardware.live`, fed
+through the same pipeline and closed loop as a simulation (`experiments.pipeline`:
+frame-triggered, the safety layer around the controller), the board is the command
+sink, and every stream and command is recorded crash-safely to a trial log in the order
+it was fed, so `walkerslam replay` of the recording reproduces the live poses. With
+`sim=True` the walker is the simulator, run in real time in a process of its own
+(`hardware.sim.live_world`) behind the board emulator on a pty (or the firmware in
+simavr) and the simulated cameras; nothing else changes.
+
+Whatever ends the run — the duration, Ctrl-C / SIGTERM (`LiveRun.stop`), the end of the
+simulated route or of a replayed recording, a device fault or a bug — the board is sent
+zero brake torque first, then the devices are closed and the log is closed. Nothing here
+prints: `on_status` receives a `LiveStatus` a few times a second for the CLI to show.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import queue
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from control.base import CONTROLLERS
+from control.safety import SafeController
+from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
+from experiments.studies.settings import build_config, source_settings
+from hardware.arduino import ArduinoBoard, BoardConfig, BoardStats
+from hardware.calibration import WalkerCalibration
+from hardware.clock import HostClock
+from hardware.live import LiveSources
+from hardware.log import LogWriter
+from hardware.messages import BrakeCommand, DepthFrame, EncoderTicks, LaserScan, Message
+from slam.base import LOCALIZERS, create
+
+# What a live run's loop does unless told otherwise: a command right after every depth
+# frame (the lowest frame-to-command latency), at 10 Hz while frames stall, no simulated
+# latency (the real one is there).
+LIVE_LOOP = LoopConfig(trigger="frame", latency_s=0.0)
+
+
+class LiveError(ValueError):
+    """A live run that cannot start (a device missing, a bad option); one line."""
+
+
+@dataclass(frozen=True)
+class SimWalker:
+    """The simulated walker of `live --sim`: its course and trial, its board."""
+
+    course: str = "thesis-course"
+    seed: int = 0
+    surface: str = "dusty"
+    duration_s: float = 300.0
+    depth_size: tuple[int, int] = (160, 120)
+    depth_rate_hz: int = 10
+    firmware: bool = False  # the compiled firmware in simavr instead of the emulator
+
+
+@dataclass(frozen=True)
+class LiveOptions:
+    """Everything a live run is made of (the CLI's options)."""
+
+    localizer: str = "dead-reckoning"
+    controller: str = "open-loop"
+    serial: str | None = None
+    depth: str = "none"  # kinect, realsense, fakenect:DIR, sim:SOCKET (a simulated walker)
+    camera: str = "none"  # a device index, a video file or folder, kinect; "sim" with sim:
+    camera_yaml: str | None = None
+    calibration: str | None = None  # a JSON file of WalkerCalibration fields
+    record: str | None = None
+    duration_s: float | None = None
+    localizer_overrides: dict[str, Any] = field(default_factory=dict)
+    controller_overrides: dict[str, Any] = field(default_factory=dict)
+    sim: SimWalker | None = None
+    loop: LoopConfig = LIVE_LOOP
+    board: BoardConfig = field(default_factory=BoardConfig)
+    max_frames: int = 2
+
+
+@dataclass
+class LiveStatus:
+    """A snapshot of a live run, for the status line."""
+
+    t: float
+    rates_hz: dict[str, float]
+    dropped: dict[str, int]
+    stalled: list[str]
+    latency_ms: tuple[float, float]  # p50, p99 of the last commands triggered by frames
+    commanded_nm: tuple[float, float]
+    board_pwm: tuple[int, int] | None  # what the board reports it applies
+    board_timed_out: bool
+    board_errors: int  # bad lines both ways, sequence gaps
+    sigma_xy_m: float
+    sigma_theta_deg: float
+    stale: tuple[str, ...]
+    events: list[str]
+
+
+@dataclass
+class LiveResult:
+    duration_s: float
+    ended_by: str  # "duration", "stopped", "route finished", "<device> ended"
+    counts: dict[str, int]
+    dropped: dict[str, int]
+    latency_ms: dict[str, float]
+    board: dict[str, Any]
+    commands: int
+    files: dict[str, Path]
+    pipeline: Pipeline
+    sources: dict[str, Any]  # per device: hardware.live.DeviceStats
+
+
+class ThreadedRecorder:
+    """Writes what the loop fed to a trial log from a thread of its own (a 640×480 depth
+    frame takes ~8 ms to encode and compress: not on the frame-to-command path), with
+    `FeedOrder`'s log times (the later of the message's time and the previous one), so a
+    replay feeds the messages in the live order. The writer flushes every 0.5 s: a
+    killed process loses at most that and the few messages still queued."""
+
+    def __init__(self, writer: LogWriter) -> None:
+        self.writer = writer
+        self.last = 0.0
+        self._q: queue.SimpleQueue[tuple[Message, float] | None] = queue.SimpleQueue()
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
+        self._thread.start()
+
+    def __call__(self, msg: Message) -> None:
+        self.last = max(self.last, msg.t)
+        self._q.put((msg, self.last))
+
+    def _run(self) -> None:
+        while (item := self._q.get()) is not None:
+            try:
+                self.writer.write(item[0], log_time=item[1])
+            except Exception as e:  # reported by close()
+                self.error = e
+
+    def close(self) -> None:
+        self._q.put(None)
+        self._thread.join()
+        self.writer.close()
+        if self.error is not None:
+            raise self.error
+
+
+class _Latency:
+    """Frame-to-command latency: from a depth frame's time (its capture on the host
+    clock) to the moment the command it triggered was written to the board."""
+
+    def __init__(self, clock: HostClock) -> None:
+        self.clock = clock
+        self.samples: list[float] = []
+        self.commands = 0
+
+    def __call__(self, cmd: BrakeCommand, frame: DepthFrame | LaserScan | None) -> None:
+        self.commands += 1
+        if frame is not None:
+            self.samples.append(self.clock.now() - frame.t)
+
+    def percentiles(self, last: int | None = None) -> tuple[float, float]:
+        s = self.samples[-last:] if last else self.samples
+        if not s:
+            return (math.nan, math.nan)
+        p50, p99 = np.percentile(np.asarray(s) * 1e3, [50, 99])
+        return float(p50), float(p99)
+
+
+class LiveRun:
+    """One live run; `run()` blocks until it ends. `stop()` may be called from a signal
+    handler or another thread."""
+
+    def __init__(
+        self,
+        options: LiveOptions,
+        on_status: Callable[[LiveStatus], None] | None = None,
+        status_hz: float = 4.0,
+    ) -> None:
+        self.options = options
+        self.on_status = on_status
+        self.status_period = 1.0 / status_hz
+        self.clock = HostClock()
+        self._world: subprocess.Popen | None = None
+        self._world_dir: tempfile.TemporaryDirectory | None = None
+        self._sources: LiveSources | None = None
+        self._stop_requested = False
+        self._events: deque[str] = deque(maxlen=4)
+        self._safe: SafeController | None = None
+        #: what the simulated walker reported (--sim): brake outputs, injected faults
+        self.world_log: list[dict[str, Any]] = []
+
+    def stop(self) -> None:
+        self._stop_requested = True
+        if self._sources is not None:
+            self._sources.stop()
+
+    def world_command(self, line: str) -> None:
+        """A line to the simulated walker's standard input (fault injection with --sim:
+        unplug, replug, reset, stall S; see hardware.sim.live_world)."""
+        if self._world is None or self._world.stdin is None:
+            raise LiveError("no simulated walker to command (live without --sim)")
+        self._world.stdin.write(line.strip() + "\n")
+        self._world.stdin.flush()
+
+    # -- setting up --------------------------------------------------------------------
+    def _start_world(self, sim: SimWalker) -> tuple[str, str]:
+        self._world_dir = tempfile.TemporaryDirectory(prefix="walkerslam-sim-")
+        cmd = [
+            sys.executable,
+            "-m",
+            "hardware.sim.live_world",
+            "--dir",
+            self._world_dir.name,
+            "--course",
+            sim.course,
+            "--seed",
+            str(sim.seed),
+            "--surface",
+            str(sim.surface),
+            "--duration",
+            str(sim.duration_s),
+            "--depth-size",
+            f"{sim.depth_size[0]}x{sim.depth_size[1]}",
+            "--depth-rate",
+            str(sim.depth_rate_hz),
+            "--board",
+            "firmware" if sim.firmware else "emulator",
+        ]
+        self._world = subprocess.Popen(
+            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1
+        )
+        self._world_events: queue.SimpleQueue[dict[str, Any] | None] = queue.SimpleQueue()
+        threading.Thread(target=self._watch_world, name="world-events", daemon=True).start()
+        ready = self._world_event("ready", timeout_s=120.0)
+        return ready["port"], ready["socket"]
+
+    def _watch_world(self) -> None:
+        world = self._world
+        assert world is not None and world.stdout is not None
+        for line in world.stdout:
+            with contextlib.suppress(ValueError):
+                ev = json.loads(line)
+                if ev.get("event") == "done":
+                    self._events.append(
+                        "sim: route finished" if ev.get("finished") else "sim: time limit"
+                    )
+                self.world_log.append(ev)
+                self._world_events.put(ev)
+        self._world_events.put(None)
+
+    def _world_event(self, name: str, timeout_s: float) -> dict[str, Any]:
+        """The simulated walker's next event called `name` (others are skipped)."""
+        deadline = time.monotonic() + timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                ev = self._world_events.get(timeout=left)
+            except queue.Empty:
+                break
+            if ev is None:
+                code = self._world.wait() if self._world is not None else "?"
+                raise LiveError(f"the simulated walker exited (code {code}) before '{name}'")
+            if ev.get("event") == name:
+                return ev
+            if ev.get("event") == "error":
+                raise LiveError(f"the simulated walker failed: {ev.get('error')}")
+        raise LiveError(f"the simulated walker did not report '{name}' within {timeout_s:.0f} s")
+
+    def _stop_world(self) -> None:
+        world, self._world = self._world, None
+        if world is not None:
+            with contextlib.suppress(OSError, ValueError):
+                world.stdin.write("quit\n")
+                world.stdin.close()
+            try:
+                world.wait(timeout=10.0)
+            except subprocess.TimeoutExpired:
+                world.kill()
+                world.wait()
+        if self._world_dir is not None:
+            self._world_dir.cleanup()
+            self._world_dir = None
+
+    def _calibration(self) -> WalkerCalibration:
+        opts = self.options
+        cal = WalkerCalibration()
+        if opts.calibration:
+            path = Path(opts.calibration)
+            try:
+                cal = WalkerCalibration.from_dict(json.loads(path.read_text()))
+            except FileNotFoundError:
+                raise LiveError(f"{path}: no such calibration file") from None
+            except (ValueError, TypeError) as e:
+                raise LiveError(f"{path}: not a walker calibration: {e}") from None
+        if opts.camera_yaml:
+            from hardware.camera_calibration import load_camera_yaml
+
+            cam = load_camera_yaml(opts.camera_yaml)
+            cal = replace(
+                cal,
+                tag_intrinsics=cam.intrinsics,
+                tag_size_m=cam.tag_size_m,
+                tag_family=cam.tag_family,
+            )
+        return cal
+
+    def _devices(self, cal: WalkerCalibration) -> list[tuple[str, Any]]:
+        opts = self.options
+        devices: list[tuple[str, Any]] = []
+        if opts.depth != "none" and not opts.depth.startswith("sim:"):
+            from hardware.depth import open_depth
+
+            devices.append(("depth", open_depth(opts.depth, cal, self.clock)))
+        if opts.camera not in ("none", "sim"):
+            from hardware.tags import open_tag_camera
+
+            devices.append(
+                (
+                    "tags",
+                    open_tag_camera(opts.camera, cal, self.clock, camera_yaml=opts.camera_yaml),
+                )
+            )
+        return devices
+
+    # -- running -----------------------------------------------------------------------
+    def run(self) -> LiveResult:
+        opts = self.options
+        LOCALIZERS.spec(opts.localizer)  # unknown names fail before any device opens
+        CONTROLLERS.spec(opts.controller)
+        build_config(LOCALIZERS, opts.localizer, opts.localizer_overrides.items())
+        ctl_cfg = build_config(CONTROLLERS, opts.controller, opts.controller_overrides.items())
+        if opts.sim is None and not opts.serial:
+            raise LiveError("live needs --serial PORT (or --sim)")
+        board: ArduinoBoard | None = None
+        pipeline: Pipeline | None = None
+        recorder: ThreadedRecorder | None = None
+        devices: list[tuple[str, Any]] = []
+        metadata: dict[str, Any] = {}
+        try:
+            serial, sock = opts.serial, None
+            if opts.sim is not None:
+                serial, sock = self._start_world(opts.sim)
+            elif opts.depth.startswith("sim:"):
+                sock = opts.depth.removeprefix("sim:")
+            if sock is not None:
+                from hardware.sim.stream import SimSensors
+
+                sensors = SimSensors(sock, self.clock)
+                cal = sensors.calibration
+                metadata.update(sensors.metadata)
+                devices.append(("sim", sensors))
+            else:
+                cal = self._calibration()
+            board = ArduinoBoard(serial, cal, self.clock, opts.board)
+            board.open()
+            devices.insert(0, ("board", board))
+            devices.extend(self._devices(cal))
+            for _, dev in devices:
+                metadata.update(getattr(dev, "metadata", {}) or {})
+            initial = (metadata.get("world") or {}).get("start_pose") or (0.0, 0.0, 0.0)
+            proposed = source_settings(LOCALIZERS, opts.localizer, metadata)
+            loc_cfg = build_config(
+                LOCALIZERS,
+                opts.localizer,
+                [*proposed.items(), *opts.localizer_overrides.items()],
+            )
+            loc = create(opts.localizer, cal, loc_cfg, initial_pose=tuple(initial))
+            ctl = CONTROLLERS.create(opts.controller, cal, config=ctl_cfg)
+            self._safe = SafeController(ctl, cal, opts.loop.safety)
+            pipeline = Pipeline(loc, cal, reference_map=False)
+            config = self._config(loc, ctl_cfg, initial, proposed)
+            files: dict[str, Path] = {}
+            if opts.record:
+                files["log"] = Path(opts.record)
+                files["log"].parent.mkdir(parents=True, exist_ok=True)
+                recorder = ThreadedRecorder(
+                    LogWriter(files["log"], cal, metadata={"config": config, **metadata})
+                )
+            self._sources = LiveSources(devices, self.clock, max_frames=opts.max_frames)
+            if self._stop_requested:
+                self._sources.stop()
+            timer = None
+            if opts.duration_s is not None:
+                timer = threading.Timer(opts.duration_s, self._sources.stop)
+                timer.daemon = True
+                timer.start()
+            latency = _Latency(self.clock)
+            last_status = [-math.inf]
+
+            def progress(t: float) -> None:
+                now = self.clock.now()
+                if self.on_status is not None and now - last_status[0] >= self.status_period:
+                    last_status[0] = now
+                    self.on_status(self._status(pipeline, board, latency))
+
+            t_start = self.clock.now()
+            run_closed_loop(
+                self._sources,
+                board,
+                pipeline,
+                self._safe,
+                opts.loop,
+                record=recorder,
+                progress=progress,
+                on_command=latency,
+            )
+            if timer is not None:
+                timer.cancel()
+            duration = self.clock.now() - t_start
+            ended = self._ended_by()
+        finally:
+            # the brakes first, then the devices, then the log
+            if board is not None:
+                if pipeline is not None and board.commanded_pwm != (0, 0):
+                    # the release is a command too: the pipeline and the log see it
+                    off = cal.brake.torque_off_nm
+                    release = BrakeCommand(self.clock.now(), off, off, "release")
+                    pipeline.feed(release)
+                    if recorder is not None:
+                        recorder(release)
+                board.close()
+            if self._sources is not None:
+                self._sources.close()
+                if pipeline is not None:
+                    for msg in self._sources.remaining():  # nothing is lost at the end
+                        pipeline.feed(msg)
+                        if recorder is not None:
+                            recorder(msg)
+            else:
+                for _, dev in devices:
+                    dev.close()
+            self._stop_world()
+            if recorder is not None:
+                recorder.close()
+        pipeline.rebuild_map()
+        stats = self._sources.stats
+        p50, p99 = latency.percentiles()
+        return LiveResult(
+            duration_s=duration,
+            ended_by=ended,
+            counts={k: v for s in stats.values() for k, v in s.by_type.items()},
+            dropped={name: s.dropped for name, s in stats.items()},
+            latency_ms={"p50": p50, "p99": p99, "frames": len(latency.samples)},
+            board=board.stats.to_dict() | {"metadata": board.metadata["board"]},
+            commands=latency.commands,
+            files=files,
+            pipeline=pipeline,
+            sources=stats,
+        )
+
+    def _ended_by(self) -> str:
+        src = self._sources
+        if src is not None and src.ended_by is not None:
+            if src.ended_by == "sim":
+                return "the simulated trial ended (route finished or its duration)"
+            return f"{src.ended_by} stream ended"
+        if self._stop_requested:
+            return "stopped"
+        return "duration"
+
+    def _config(self, loc, ctl_cfg, initial, proposed) -> dict[str, Any]:
+        from experiments.run import VERSION, _jsonable
+
+        opts = self.options
+        return {
+            "command": "live",
+            "walker_slam_version": VERSION,
+            "initial_pose": list(initial),
+            "localizer": opts.localizer,
+            "localizer_config": _jsonable(loc.config),
+            "source_localizer_settings": proposed,
+            "controller": opts.controller,
+            "controller_config": _jsonable(ctl_cfg),
+            "loop": asdict(opts.loop),
+            "devices": {
+                "serial": opts.serial if opts.sim is None else "sim",
+                "depth": opts.depth,
+                "camera": opts.camera,
+                "camera_yaml": opts.camera_yaml,
+            },
+            "sim": asdict(opts.sim) if opts.sim is not None else None,
+        }
+
+    def _status(self, pipeline: Pipeline, board: ArduinoBoard, latency: _Latency) -> LiveStatus:
+        src = self._sources
+        assert src is not None
+        now = self.clock.now()
+        rates, dropped, stalled = {}, {}, []
+        for name, s in src.stats.items():
+            rates[name] = s.rate_hz(now)
+            dropped[name] = s.dropped
+            stalled.extend(name if k == "*" else f"{name}/{k}" for k in sorted(s.stalled))
+        st: BoardStats = board.stats
+        tick = st.last_tick
+        board_errors = st.bad_lines + st.seq_gaps
+        if st.status is not None:
+            b = st.status
+            board_errors += b.rx_bad_crc + b.rx_malformed + b.rx_overflow
+        est = pipeline.localizer.estimate()
+        cov = np.asarray(est.covariance)
+        cmds = pipeline.recorded.commands
+        last = cmds[-1] if cmds else None
+        safe = self._safe
+        return LiveStatus(
+            t=now,
+            rates_hz=rates,
+            dropped=dropped,
+            stalled=stalled,
+            latency_ms=latency.percentiles(last=300),
+            commanded_nm=(last.left_nm, last.right_nm) if last else (math.nan, math.nan),
+            board_pwm=(tick.pwm_left, tick.pwm_right) if tick else None,
+            board_timed_out=bool(tick and tick.timed_out),
+            board_errors=board_errors,
+            sigma_xy_m=float(math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0))),
+            sigma_theta_deg=float(math.degrees(math.sqrt(max(cov[2, 2], 0.0)))),
+            stale=safe.last_stale if safe is not None else (),
+            events=list(self._events),
+        )
+
+
+def run_live(
+    options: LiveOptions, on_status: Callable[[LiveStatus], None] | None = None
+) -> LiveResult:
+    """One live run with `options`; see LiveRun."""
+    return LiveRun(options, on_status).run()
+
+
+@dataclass
+class BoardBenchResult:
+    """What `walkerslam board` saw."""
+
+    handshake: Any
+    duration_s: float
+    ticks: int
+    counts: tuple[int, int]
+    stats: dict[str, Any]
+    files: dict[str, Path]
+
+
+@dataclass
+class BoardReading:
+    """One update of the bench tool's live display."""
+
+    t: float
+    counts: tuple[int, int]
+    rate_hz: float
+    pwm: tuple[int, int] | None
+    timed_out: bool
+    stats: BoardStats
+
+
+def bench_board(
+    port: str,
+    *,
+    calibration: WalkerCalibration | None = None,
+    duration_s: float | None = None,
+    record: str | None = None,
+    brake_nm: tuple[float, float] | None = None,
+    on_update: Callable[[BoardReading], None] | None = None,
+    stop: threading.Event | None = None,
+    config: BoardConfig | None = None,
+) -> BoardBenchResult:
+    """The bench tool for wiring the walker: handshake, the counts live, a brake command
+    held for the duration (torques in N·m), ticks and commands recorded to a trial log.
+    Ends at the duration or when `stop` is set; always releases the brakes."""
+    cal = calibration or WalkerCalibration()
+    clock = HostClock()
+    board = ArduinoBoard(port, cal, clock, config)
+    hs = board.open()
+    stop = stop or threading.Event()
+    files: dict[str, Path] = {}
+    writer = None
+    if record:
+        files["log"] = Path(record)
+        files["log"].parent.mkdir(parents=True, exist_ok=True)
+        config_record = {
+            "command": "board",
+            "port": str(port),
+            "brake_nm": list(brake_nm) if brake_nm else None,
+            "duration_s": duration_s,
+        }
+        writer = ThreadedRecorder(
+            LogWriter(files["log"], cal, metadata={"config": config_record, **board.metadata})
+        )
+
+    def closer() -> None:
+        stop.wait(duration_s)
+        board.close()  # zero brake; ends messages()
+
+    watcher = threading.Thread(target=closer, name="board-bench-stop", daemon=True)
+    watcher.start()
+    t0 = clock.now()
+    ticks, counts, last_update = 0, (0, 0), -math.inf
+    recent: deque[float] = deque(maxlen=500)
+    try:
+        if brake_nm is not None:
+            cmd = BrakeCommand(clock.now(), brake_nm[0], brake_nm[1], "board-bench")
+            board.send(cmd)
+            if writer is not None:
+                writer(cmd)
+        for msg in board.messages():
+            if writer is not None:
+                writer(msg)
+            if isinstance(msg, EncoderTicks):
+                ticks += 1
+                counts = (msg.left, msg.right)
+                recent.append(msg.t)
+            now = clock.now()
+            if on_update is not None and now - last_update >= 0.1:
+                last_update = now
+                tick = board.stats.last_tick
+                rate = sum(1 for t in recent if now - t <= 1.0)
+                on_update(
+                    BoardReading(
+                        now - t0,
+                        counts,
+                        float(rate),
+                        (tick.pwm_left, tick.pwm_right) if tick else None,
+                        bool(tick and tick.timed_out),
+                        board.stats,
+                    )
+                )
+    finally:
+        stop.set()
+        board.close()
+        watcher.join(timeout=2.0)
+        if writer is not None:
+            if brake_nm is not None:
+                off = cal.brake.torque_off_nm
+                writer(BrakeCommand(clock.now(), off, off, "board-bench"))
+            writer.close()
+    return BoardBenchResult(hs, clock.now() - t0, ticks, counts, board.stats.to_dict(), files)

@@ -1,0 +1,263 @@
+"""`walkerslam live` and `walkerslam board`: the walker live, and the bench tool for
+wiring it (`experiments.live`). `register(app)` adds them to the CLI; errors follow the
+CLI's rule (one line `error: …`, exit 2; a bug keeps its traceback)."""
+
+from __future__ import annotations
+
+import math
+import signal
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+@contextmanager
+def _stop_on_signals(stop):
+    """SIGINT (Ctrl-C) and SIGTERM call `stop()` once; a second Ctrl-C interrupts."""
+    seen = {"n": 0}
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def handler(signum, frame):
+        seen["n"] += 1
+        if seen["n"] > 1 and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        stop()
+
+    for s in previous:
+        signal.signal(s, handler)
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def _fmt_nm(v: float) -> str:
+    return "—" if not math.isfinite(v) else f"{v:.2f}"
+
+
+def status_line(s) -> str:
+    """One line of a LiveStatus (experiments.live)."""
+    rates = " ".join(f"{k} {v:.0f}Hz" for k, v in s.rates_hz.items())
+    dropped = sum(s.dropped.values())
+    p50, p99 = s.latency_ms
+    lat = "—" if not math.isfinite(p50) else f"{p50:.1f}/{p99:.1f} ms"
+    pwm = "—" if s.board_pwm is None else f"{s.board_pwm[0]}/{s.board_pwm[1]}"
+    if s.board_timed_out:
+        pwm += " (timed out)"
+    stale = ",".join(s.stale) if s.stale else "-"
+    stalled = f" stalled {','.join(s.stalled)}" if s.stalled else ""
+    events = f" | {s.events[-1]}" if s.events else ""
+    return (
+        f"{s.t:7.1f}s | {rates} | frame→cmd p50/p99 {lat} | brakes "
+        f"{_fmt_nm(s.commanded_nm[0])}/{_fmt_nm(s.commanded_nm[1])} N·m PWM {pwm} | "
+        f"σ {s.sigma_xy_m:.2f} m {s.sigma_theta_deg:.1f}° | dropped {dropped} | board errors "
+        f"{s.board_errors} | stale {stale}{stalled}{events}"
+    )
+
+
+def _parse_pair(text: str, what: str) -> tuple[float, float]:
+    try:
+        a, b = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"{what} takes two numbers L,R, got '{text}'") from None
+    return a, b
+
+
+def register(app: typer.Typer) -> None:
+    """Add `live` and `board` to `app` (the `walkerslam` CLI)."""
+    from rich.live import Live
+    from rich.text import Text
+
+    from experiments.cli import console, err_console, friendly, parse_size
+
+    @app.command()
+    @friendly
+    def live(
+        localizer: Annotated[str, typer.Option(help="localizer to run")] = "dead-reckoning",
+        controller: Annotated[str, typer.Option(help="braking controller")] = "open-loop",
+        serial: Annotated[
+            str | None, typer.Option(help="the board's serial port, e.g. /dev/ttyACM0")
+        ] = None,
+        depth: Annotated[
+            str, typer.Option(help="kinect, kinect:INDEX, realsense, fakenect:DIR or none")
+        ] = "none",
+        camera: Annotated[
+            str,
+            typer.Option(
+                help="tag camera: a device INDEX, a video file or image folder, kinect, or none"
+            ),
+        ] = "none",
+        camera_calibration: Annotated[
+            Path | None,
+            typer.Option(help="the tag camera's calibration YAML (walkerslam calibrate-camera)"),
+        ] = None,
+        calibration: Annotated[
+            Path | None, typer.Option(help="walker calibration JSON (default: the thesis walker)")
+        ] = None,
+        record: Annotated[
+            Path | None, typer.Option(help="record every stream and command to this .mcap")
+        ] = None,
+        duration: Annotated[float | None, typer.Option(help="stop after this many s")] = None,
+        set_: Annotated[
+            list[str] | None,
+            typer.Option(
+                "--set",
+                help="NAME.FIELD=VALUE: a field of the localizer's or controller's config "
+                "(repeatable)",
+            ),
+        ] = None,
+        sim: Annotated[
+            bool,
+            typer.Option(
+                "--sim",
+                help="the simulated walker in real time: board emulator on a pty, simulated "
+                "cameras",
+            ),
+        ] = False,
+        firmware: Annotated[
+            bool, typer.Option("--firmware", help="--sim: the compiled firmware in simavr")
+        ] = False,
+        course: Annotated[str, typer.Option(help="--sim: course name or JSON")] = "thesis-course",
+        seed: Annotated[int, typer.Option(help="--sim: random seed")] = 0,
+        surface: Annotated[str, typer.Option(help="--sim: clean, dusty or S")] = "dusty",
+        depth_size: Annotated[str, typer.Option(help="--sim: depth image WxH")] = "160x120",
+        depth_rate: Annotated[int, typer.Option(help="--sim: depth frames per second")] = 10,
+        sim_duration: Annotated[
+            float, typer.Option(help="--sim: longest simulated trial [s]")
+        ] = 300.0,
+    ) -> None:
+        """Run a localizer and a braking controller live on the walker (or, with --sim, on
+        the simulated walker in real time), recording everything; Ctrl-C stops and
+        releases the brakes."""
+        from control.base import CONTROLLERS
+        from experiments.live import LiveError, LiveOptions, LiveRun, SimWalker
+        from experiments.studies.settings import parse_sets
+        from slam.base import LOCALIZERS
+
+        LOCALIZERS.spec(localizer)
+        CONTROLLERS.spec(controller)
+        if localizer == controller:
+            raise ValueError("the localizer and the controller need different names")
+        sets = parse_sets(
+            set_ or [], {localizer: LOCALIZERS, controller: CONTROLLERS}, [localizer, controller]
+        )
+        sim_walker = None
+        if sim:
+            if serial is not None or depth != "none" or camera != "none":
+                raise LiveError(
+                    "--sim brings its own board and cameras: drop --serial/--depth/--camera"
+                )
+            sim_walker = SimWalker(
+                course=course,
+                seed=seed,
+                surface=surface,
+                duration_s=sim_duration,
+                depth_size=parse_size(depth_size),
+                depth_rate_hz=depth_rate,
+                firmware=firmware,
+            )
+        elif firmware:
+            raise LiveError("--firmware goes with --sim")
+        opts = LiveOptions(
+            localizer=localizer,
+            controller=controller,
+            serial=serial,
+            depth=depth,
+            camera=camera,
+            camera_yaml=str(camera_calibration) if camera_calibration else None,
+            calibration=str(calibration) if calibration else None,
+            record=str(record) if record else None,
+            duration_s=duration,
+            localizer_overrides=sets.get(localizer, {}),
+            controller_overrides=sets.get(controller, {}),
+            sim=sim_walker,
+        )
+        with Live(
+            Text("starting…"), console=err_console, auto_refresh=False, transient=False
+        ) as view:
+            run = LiveRun(opts, on_status=lambda s: view.update(Text(status_line(s)), refresh=True))
+            with _stop_on_signals(run.stop):
+                res = run.run()
+        lat = res.latency_ms
+        console.print(
+            f"live run ended ({res.ended_by}) after {res.duration_s:.1f} s: "
+            f"{res.commands} brake commands, frame→command latency p50 {lat['p50']:.1f} ms, "
+            f"p99 {lat['p99']:.1f} ms over {lat['frames']} frames; dropped "
+            f"{sum(res.dropped.values())} frames; board: {res.board['ticks']} ticks, "
+            f"{res.board['bad_lines']} bad lines, {res.board['seq_gaps']} sequence gaps, "
+            f"{res.board['resets']} resets, {res.board['reconnects']} reconnects",
+            highlight=False,
+        )
+        if "log" in res.files:
+            console.print(f"recorded → {res.files['log']}", highlight=False)
+
+    @app.command()
+    @friendly
+    def board(
+        port: Annotated[str, typer.Argument(help="serial port, e.g. /dev/ttyACM0")],
+        duration: Annotated[float | None, typer.Option(help="stop after this many s")] = None,
+        record: Annotated[
+            Path | None, typer.Option(help="record ticks and commands to this .mcap")
+        ] = None,
+        brake: Annotated[
+            str | None, typer.Option(help="hold this brake command, L,R torques in N·m")
+        ] = None,
+        calibration: Annotated[
+            Path | None, typer.Option(help="walker calibration JSON (default: the thesis walker)")
+        ] = None,
+    ) -> None:
+        """The bench tool for wiring the walker: handshake, print the firmware, the tick
+        rate and both encoder counts live, hold a brake command; exit releases the brakes."""
+        import json
+
+        from experiments.live import bench_board
+        from hardware.calibration import WalkerCalibration
+
+        brake_nm = _parse_pair(brake, "--brake") if brake else None
+        cal = WalkerCalibration()
+        if calibration is not None:
+            try:
+                cal = WalkerCalibration.from_dict(json.loads(calibration.read_text()))
+            except FileNotFoundError:
+                raise ValueError(f"{calibration}: no such calibration file") from None
+            except (TypeError, ValueError) as e:
+                raise ValueError(f"{calibration}: not a walker calibration: {e}") from None
+        stop = threading.Event()
+
+        def show(r) -> None:
+            pwm = "—" if r.pwm is None else f"{r.pwm[0]}/{r.pwm[1]}"
+            s = r.stats
+            view.update(
+                Text(
+                    f"{r.t:7.1f}s  left {r.counts[0]:>9d}  right {r.counts[1]:>9d}  "
+                    f"{r.rate_hz:5.0f} Hz  PWM {pwm}{' (timed out)' if r.timed_out else ''}  "
+                    f"bad lines {s.bad_lines}  gaps {s.seq_gaps}  resets {s.resets}"
+                ),
+                refresh=True,
+            )
+
+        with Live(Text("connecting…"), console=err_console, auto_refresh=False) as view:
+            with _stop_on_signals(stop.set):
+                res = bench_board(
+                    port,
+                    calibration=cal,
+                    duration_s=duration,
+                    record=str(record) if record else None,
+                    brake_nm=brake_nm,
+                    on_update=show,
+                    stop=stop,
+                )
+        hs = res.handshake
+        console.print(
+            f"{port}: firmware {hs.firmware} (protocol {hs.proto}), {hs.rate_hz} Hz, "
+            f"{hs.cpr} counts/rev, reset cause {hs.reset_cause}; {res.ticks} ticks in "
+            f"{res.duration_s:.1f} s, counts left {res.counts[0]} right {res.counts[1]}; "
+            f"brakes released",
+            highlight=False,
+        )
+        if "log" in res.files:
+            console.print(f"recorded → {res.files['log']}", highlight=False)

@@ -1,0 +1,210 @@
+"""`walkerslam live --sim`: the whole live path against the simulated walker in real time
+(its own process, the board emulator on a pty, the simulated cameras on a socket), with
+the real driver, the live sources, the closed loop and the recorder; faults injected."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from control.base import CONTROLLERS, ControlInput, Controller
+from experiments.live import LiveError, LiveOptions, LiveRun, SimWalker
+from experiments.run import replay_log
+from hardware.log import read_log
+from hardware.messages import BrakeCommand, DepthFrame, DeviceEvent, EncoderTicks
+from slam.base import LOCALIZERS
+from slam.dead_reckoning import DeadReckoning, DeadReckoningConfig
+
+
+class Hold(Controller):
+    """Always the same torques (the safety layer decides what reaches the brakes)."""
+
+    def __init__(self, cfg, calibration):
+        self.torque = 2.0
+
+    def command(self, inp: ControlInput) -> BrakeCommand:
+        return BrakeCommand(inp.t, self.torque, self.torque, "hold")
+
+
+class SlowDeadReckoning(DeadReckoning):
+    """Dead reckoning that takes 150 ms per depth frame: slower than the camera."""
+
+    def process(self, msg):
+        if isinstance(msg, DepthFrame):
+            time.sleep(0.15)
+        super().process(msg)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def test_members():
+    CONTROLLERS.register("hold-test", DeadReckoningConfig, "test: constant torque")(
+        lambda cfg, cal: Hold(cfg, cal)
+    )
+    CONTROLLERS.names()
+    LOCALIZERS.register("slow-test", DeadReckoningConfig, "test: slow dead reckoning")(
+        SlowDeadReckoning
+    )
+    yield
+    CONTROLLERS._specs.pop("hold-test")
+    LOCALIZERS._specs.pop("slow-test")
+
+
+class Background:
+    """A LiveRun in a thread, with its status snapshots."""
+
+    def __init__(self, options):
+        self.statuses = []
+        self.run = LiveRun(options, on_status=self.statuses.append, status_hz=20.0)
+        self.result = None
+        self.error = None
+        self.thread = threading.Thread(target=self._go, daemon=True)
+        self.thread.start()
+
+    def _go(self):
+        try:
+            self.result = self.run.run()
+        except BaseException as e:  # reported by join()
+            self.error = e
+
+    def wait_until(self, t, timeout=60.0):
+        """Until the run's clock has reached t seconds of looping."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.statuses and self.statuses[-1].t >= t:
+                return
+            if not self.thread.is_alive():
+                raise AssertionError(f"the run ended early: {self.error!r}")
+            time.sleep(0.01)
+        raise AssertionError(f"the run did not reach t={t}")
+
+    def join(self, timeout=60.0):
+        self.thread.join(timeout)
+        assert not self.thread.is_alive(), "the live run did not end"
+        if self.error is not None:
+            raise self.error
+        return self.result
+
+
+def sim_options(tmp_path, **kw):
+    base = {
+        "localizer": "dead-reckoning",
+        "controller": "open-loop",
+        "record": str(tmp_path / "live.mcap"),
+        "sim": SimWalker(duration_s=kw.pop("sim_s", 8.0), seed=kw.pop("seed", 1)),
+    }
+    base.update(kw)
+    return LiveOptions(**base)
+
+
+@pytest.mark.slow
+def test_live_sim_records_and_replay_reproduces_the_live_run(tmp_path):
+    opts = sim_options(tmp_path, localizer="ekf-slam", sim_s=8.0)
+    bg = Background(opts)
+    res = bg.join()
+    assert res.ended_by.startswith("the simulated trial ended")
+    trial = read_log(opts.record)
+    assert trial.complete
+    assert {"config", "world", "board"} <= set(trial.metadata)
+    msgs = list(trial.messages())
+    ticks = [m for m in msgs if isinstance(m, EncoderTicks)]
+    # every encoder report the driver decoded reached the loop and the log: none dropped
+    assert len(ticks) == res.board["ticks"] > 700
+    assert res.board["bad_lines"] == 0 and res.board["seq_gaps"] == 0
+    # every frame the walker sent arrived; the ones the loop had no time for were dropped
+    # and counted, the rest fed and recorded
+    sent = next(e for e in bg.run.world_log if e["event"] == "done")["sent"]
+    stats = res.sources["sim"]
+    assert stats.by_type == {k: v for k, v in sent.items() if k != "end"}
+    for kind in ("DepthFrame", "TagDetections", "GroundTruthPose"):
+        recorded = sum(type(m).__name__ == kind for m in msgs)
+        assert recorded == stats.by_type[kind] - stats.dropped_by_type.get(kind, 0)
+    assert stats.by_type["DepthFrame"] >= 79  # 8 s at 10 Hz
+    assert res.latency_ms["frames"] > 50 and res.latency_ms["p50"] < 100.0
+    # the replay of the recording is the live run: the same poses, the same commands
+    rep = replay_log(opts.record, tmp_path / "replay", localizer="ekf-slam", figures=False)
+    live_traj = res.pipeline.localizer.trajectory()
+    rep_traj = rep.pipeline.localizer.trajectory()
+    assert np.array_equal(live_traj.t, rep_traj.t)
+    assert np.array_equal(live_traj.poses, rep_traj.poses)
+    live_cmds = [(c.t, c.left_nm, c.right_nm) for c in res.pipeline.recorded.commands]
+    rep_cmds = [(c.t, c.left_nm, c.right_nm) for c in rep.pipeline.recorded.commands]
+    assert live_cmds == rep_cmds and len(live_cmds) > 50
+    # scored against the simulator's truth like a simulated trial
+    assert rep.metrics["ate_rmse_m"] < 0.5
+    assert "out_of_order_dropped" not in rep.metrics
+
+
+@pytest.mark.slow
+def test_faults_unplug_garbage_reset_and_a_camera_stall(tmp_path):
+    opts = sim_options(tmp_path, controller="hold-test", sim_s=14.0)
+    bg = Background(opts)
+    bg.wait_until(2.0)
+    bg.run.world_command("garble")
+    bg.wait_until(3.0)
+    bg.run.world_command("unplug")
+    bg.wait_until(4.0)
+    bg.run.world_command("replug")
+    bg.wait_until(6.0)
+    bg.run.world_command("reset")
+    bg.wait_until(8.0)
+    bg.run.world_command("stall 1.5")
+    t_stall = bg.statuses[-1].t
+    res = bg.join()
+    board = res.board
+    assert board["disconnects"] == 1 and board["reconnects"] == 1 and board["resets"] == 1
+    assert board["bad_lines"] >= 2  # the garbage: a bad checksum and an over-long line
+    msgs = list(read_log(opts.record).messages())
+    events = [(m.device, m.event) for m in msgs if isinstance(m, DeviceEvent)]
+    for ev in [
+        ("board", "connected"),
+        ("board", "disconnected"),
+        ("board", "reconnected"),
+        ("board", "reset"),
+        ("sim", "stalled"),
+        ("sim", "resumed"),
+    ]:
+        assert ev in events
+    # while unplugged nobody fed the board: the emulator released the brakes itself
+    brakes = [e for e in bg.run.world_log if e["event"] == "brakes"]
+    assert any(e["left"] == 0 and e["right"] == 0 for e in brakes[1:])
+    # odometry never jumps: across the gap and across the board's restart the counts
+    # are re-based (the first report after either has the counts of the last before)
+    order = [m for m in msgs if isinstance(m, EncoderTicks | DeviceEvent)]
+    for event in ("disconnected", "reset"):
+        i = next(k for k, m in enumerate(order) if getattr(m, "event", "") == event)
+        before = next(m for m in reversed(order[:i]) if isinstance(m, EncoderTicks))
+        after = next(m for m in order[i:] if isinstance(m, EncoderTicks))
+        assert (after.left, after.right) == (before.left, before.right), event
+    poses = res.pipeline.localizer.trajectory().poses
+    assert np.hypot(*np.diff(poses[:, :2], axis=0).T).max() < 0.2  # ~1 m/s, 100 Hz
+    # the camera stall: the safety layer ramps the brakes to the residual torque after
+    # the stale limit (0.3 s) over its ramp (0.5 s), and the status says why
+    off = res.pipeline.calibration.brake.torque_off_nm
+    cmds = [c for c in res.pipeline.recorded.commands if t_stall + 0.9 < c.t < t_stall + 1.4]
+    assert cmds and all(c.left_nm == off and c.right_nm == off for c in cmds)
+    stale = [s for s in bg.statuses if t_stall + 0.4 < s.t < t_stall + 1.4]
+    assert stale and all("map" in s.stale for s in stale)
+    assert any("sim/DepthFrame" in s.stalled for s in stale)
+    # and brakes come back when the camera does
+    after = [c for c in res.pipeline.recorded.commands if c.t > t_stall + 2.5]
+    assert any(c.left_nm > 1.0 for c in after)
+
+
+@pytest.mark.slow
+def test_a_localizer_slower_than_the_camera_drops_frames_never_ticks(tmp_path):
+    opts = sim_options(tmp_path, localizer="slow-test", sim_s=5.0)
+    res = Background(opts).join()
+    assert res.dropped["sim"] > 10  # ~10 Hz frames, at most ~6.7 Hz processed
+    msgs = list(read_log(opts.record).messages())
+    assert sum(isinstance(m, EncoderTicks) for m in msgs) == res.board["ticks"]
+    assert res.board["seq_gaps"] == 0
+
+
+def test_live_needs_a_board(tmp_path):
+    with pytest.raises(LiveError, match="--serial"):
+        LiveRun(LiveOptions()).run()
+    with pytest.raises(ValueError, match="unknown localizer"):
+        LiveRun(LiveOptions(localizer="nope", serial="x")).run()
