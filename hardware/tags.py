@@ -61,7 +61,8 @@ the smallest (~12 px) real tags by up to 0.8 px and loses one or two of them (NA
 
 **Sources.** `open_tag_camera(spec, ...)` opens a device index (OpenCV `VideoCapture`),
 a video file, an image folder (files sorted by name), a single image, or `kinect` /
-`kinect:N` (the Kinect's RGB stream through `hardware.depth.kinect_rgb_frames`). A
+`kinect:N` / `fakenect:DIR` (the Kinect's RGB stream through
+`hardware.depth.kinect_rgb_frames`, which stamps it from the device's clock). A
 capture thread reads frames and stamps them on the run's `HostClock` when they arrive
 (`VideoCapture.grab()` returning; the file read for folders); the consumer's thread
 detects. The buffer between them holds one frame:
@@ -90,7 +91,7 @@ import re
 import threading
 import time
 import weakref
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Protocol
@@ -469,31 +470,74 @@ class ImageFolderFrames:
 
 
 class KinectFrames:
-    """The Kinect's RGB stream, from `hardware.depth.kinect_rgb_frames` (stamped there)."""
+    """The Kinect's RGB stream through `hardware.depth.kinect_rgb_frames` (BGR, stamped
+    there on the clock at capture). spec: "kinect", "kinect:INDEX" or "fakenect:DIR" (a
+    recording replayed through libfreenect). Opening waits for the first frame."""
 
     kind = "kinect"
     live = True
 
-    def __init__(self, index: int, clock: HostClock) -> None:
-        self.index = index
-        self.name = f"kinect:{index}"
+    def __init__(self, spec: str, clock: HostClock) -> None:
+        self.name = spec
         self.clock = clock
         try:
             from hardware.depth import kinect_rgb_frames
         except ImportError as e:
             raise TagCameraError(
-                f"tag camera kinect: hardware.depth.kinect_rgb_frames is not available ({e})"
+                f"tag camera {spec}: hardware.depth.kinect_rgb_frames is not available ({e})"
             ) from None
-        self._open: Callable[..., Iterator[tuple[float, np.ndarray]]] = kinect_rgb_frames
+        index: int | str = int(spec.split(":", 1)[1]) if spec.startswith("kinect:") else spec
+        if spec == "kinect":
+            index = 0
+        self._stop = _StopFlag()
+        try:
+            self._stream: Any = kinect_rgb_frames(clock, index=index, stop=self._stop)
+        except ValueError as e:  # hardware.depth.DeviceError: one line already
+            raise TagCameraError(f"tag camera {spec}: {e}") from None
+        self._lock = threading.Lock()
 
     def describe(self) -> dict[str, Any]:
-        return {"kind": self.kind, "source": self.name, "index": self.index}
+        return {"kind": self.kind, "source": self.name}
+
+    def diagnostics(self) -> dict[str, Any]:
+        """The driver's own counts (frames it dropped or the device skipped)."""
+        out = {}
+        for key in ("frames_dropped", "frames_skipped"):
+            value = getattr(self._stream, key, None)
+            if isinstance(value, int):
+                out[f"driver_{key}"] = value
+        return out
 
     def frames(self, stop: threading.Event) -> Iterator[tuple[float, np.ndarray]]:
-        yield from self._open(self.clock, index=self.index, stop=stop)
+        self._stop.also(stop)  # the stream then ends <= 0.1 s after the source's stop
+        for t, img in self._stream:
+            if stop.is_set():
+                return
+            yield t, img
 
     def release(self) -> None:
-        pass
+        self._stop.set()
+        with self._lock:
+            close = getattr(self._stream, "close", None)
+            if close is not None:
+                close()
+
+
+class _StopFlag:
+    """Set by release(), or when an attached event is set (what `stop` arguments take)."""
+
+    def __init__(self) -> None:
+        self._own = threading.Event()
+        self._other: threading.Event | None = None
+
+    def also(self, event: threading.Event) -> None:
+        self._other = event
+
+    def set(self) -> None:
+        self._own.set()
+
+    def is_set(self) -> bool:
+        return self._own.is_set() or (self._other is not None and self._other.is_set())
 
 
 class _Pacer:
@@ -519,8 +563,8 @@ class _Pacer:
 
 def parse_spec(
     spec: int | str | os.PathLike[str],
-) -> tuple[str, int | Path]:
-    """A tag camera spec → ("device", index) | ("kinect", index) | ("path", Path)."""
+) -> tuple[str, int | str | Path]:
+    """A tag camera spec → ("device", index) | ("kinect", spec) | ("path", Path)."""
     if isinstance(spec, bool):
         raise TagCameraError(f"unknown tag camera {spec!r}")
     if isinstance(spec, int):
@@ -531,16 +575,15 @@ def parse_spec(
         s = spec.strip()
         if re.fullmatch(r"\d+", s):
             return "device", int(s)
-        m = re.fullmatch(r"kinect(?::(\d+))?", s)
-        if m:
-            return "kinect", int(m.group(1) or 0)
+        if re.fullmatch(r"kinect(:\d+)?", s) or s.startswith("fakenect:"):
+            return "kinect", s
     if isinstance(spec, str | os.PathLike):
         p = Path(spec)
         if p.exists():
             return "path", p
         raise TagCameraError(
             f"unknown tag camera {str(spec)!r}: not a device index, 'kinect[:N]', "
-            "or an existing video file, image or image folder"
+            "'fakenect:DIR', or an existing video file, image or image folder"
         )
     raise TagCameraError(f"unknown tag camera {spec!r}")
 
@@ -559,7 +602,7 @@ def open_frames(
         assert isinstance(target, int)
         return VideoCaptureFrames(target, clock, width=width, height=height, fps=fps)
     if kind == "kinect":
-        assert isinstance(target, int)
+        assert isinstance(target, str)
         return KinectFrames(target, clock)
     assert isinstance(target, Path)
     if target.is_dir() or target.suffix.lower() in IMAGE_SUFFIXES:
@@ -613,11 +656,15 @@ class TagCameraSource:
     def diagnostics(self) -> dict[str, Any]:
         """Frame counts so far: captured (accepted from the camera), skipped (replaced by a
         newer frame before detection), out of order (dropped: stamp not increasing),
-        detected (TagDetections yielded), detections (tags), mean detection time."""
+        detected (TagDetections yielded), detections (tags), mean detection time; and the
+        driver's own counts where it has them (`driver_*`)."""
         with self._cv:
             d: dict[str, Any] = dict(self._counts)
         n = d["frames_detected"]
         d["detect_ms_mean"] = 1000.0 * self._detect_s / n if n else 0.0
+        driver = getattr(self.frames, "diagnostics", None)
+        if driver is not None:
+            d.update(driver())
         return d
 
     @property
@@ -745,8 +792,8 @@ def open_tag_camera(
 ) -> TagCameraSource:
     """Open a tag camera as a Source of TagDetections stamped on `clock`.
 
-    spec: a device index (int or digits), "kinect" / "kinect:N", a video file, an image
-    file or a folder of images. camera_yaml: the camera calibration file (intrinsics,
+    spec: a device index (int or digits), "kinect" / "kinect:N" / "fakenect:DIR", a video
+    file, an image file or a folder of images. camera_yaml: the camera calibration file (intrinsics,
     distortion, optionally tag family and size); without it the calibration's
     tag_intrinsics with no distortion. The source's calibration is `calibration` with the
     file's intrinsics and tag settings. A device is asked for the calibration's
