@@ -28,11 +28,12 @@ err_console = Console(stderr=True)
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
+    from experiments.live_view import ViewError
     from hardware.live import DeviceFault
     from hardware.log import LogError
     from hardware.registry import UnknownNameError
 
-    return (LogError, UnknownNameError, FileNotFoundError, ValueError, DeviceFault)
+    return (LogError, UnknownNameError, FileNotFoundError, ValueError, DeviceFault, ViewError)
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -272,6 +273,20 @@ def replay(
     ] = None,
     set_: SetOpt = None,
     dataset_option: DatasetOpt = None,
+    foxglove: Annotated[
+        bool,
+        typer.Option(
+            "--foxglove",
+            help="serve the replay to Foxglove (WebSocket), paced to real time; the final "
+            "state stays up until Ctrl-C (or --linger S)",
+        ),
+    ] = False,
+    foxglove_port: Annotated[int, typer.Option(help="--foxglove: port (0: any free)")] = 8765,
+    speed: Annotated[float, typer.Option(help="--foxglove: replay speed, × real time")] = 1.0,
+    fast: Annotated[bool, typer.Option("--fast", help="--foxglove: do not pace")] = False,
+    linger: Annotated[
+        float | None, typer.Option(help="--foxglove: serve this long after the end [s]")
+    ] = None,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
@@ -311,18 +326,57 @@ def replay(
     # the settings the source proposes (e.g. a dataset's noise levels), then --set
     proposed = source_settings(LOCALIZERS, localizer, trial.metadata)
     localizer_config = build_config(LOCALIZERS, localizer, [*proposed.items(), *overrides.items()])
-    with progress_bar(f"replaying with {localizer}", total) as update:
-        res = replay_log(
-            trial,
-            out,
-            localizer=localizer,
-            localizer_config=localizer_config,
-            mapper_config=mapper_config,
-            controller=controller,
-            progress=lambda t: update(elapsed(t)),
-        )
-    _print_metrics(res.metrics, res.files)
-    _print_drag(res.metrics)
+    view = None
+    if foxglove:
+        from experiments.live_view import FoxgloveView
+
+        if not speed > 0:
+            raise ValueError(f"--speed must be > 0, got {speed}")
+        view = FoxgloveView(trial.calibration, port=foxglove_port)
+        console.print(f"live view: {view.url} (Foxglove: open a WebSocket connection)")
+    try:
+        with progress_bar(f"replaying with {localizer}", total) as update:
+            res = replay_log(
+                trial,
+                out,
+                localizer=localizer,
+                localizer_config=localizer_config,
+                mapper_config=mapper_config,
+                controller=controller,
+                progress=lambda t: update(elapsed(t)),
+                observers=(
+                    (lambda p: [view.observer(p, realtime=not fast, speed=speed)])
+                    if view is not None
+                    else None
+                ),
+            )
+        _print_metrics(res.metrics, res.files)
+        _print_drag(res.metrics)
+        if view is not None:
+            view.publish_state(res.pipeline)
+            _linger(view, linger)
+    finally:
+        if view is not None:
+            view.close()
+
+
+def _linger(view, seconds: float | None) -> None:
+    """Keep the live view serving after a replay: `seconds`, or until Ctrl-C."""
+    import time
+
+    console.print(
+        f"serving the final state at {view.url}"
+        + (f" for {seconds:.0f} s" if seconds is not None else "; Ctrl-C to stop"),
+        highlight=False,
+    )
+    try:
+        if seconds is not None:
+            time.sleep(max(seconds, 0.0))
+        else:
+            while True:
+                time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
 
 
 def _print_drag(metrics: dict) -> None:

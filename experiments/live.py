@@ -90,6 +90,8 @@ class LiveOptions:
     loop: LoopConfig = LIVE_LOOP
     board: BoardConfig = field(default_factory=BoardConfig)
     max_frames: int = 2
+    foxglove_port: int | None = None  # serve the live view (experiments.live_view) here
+    foxglove_host: str = "127.0.0.1"
 
 
 @dataclass
@@ -109,6 +111,7 @@ class LiveStatus:
     sigma_theta_deg: float
     stale: tuple[str, ...]
     events: list[str]
+    view_url: str | None = None
 
 
 @dataclass
@@ -203,6 +206,7 @@ class LiveRun:
         self._safe: SafeController | None = None
         #: what the simulated walker reported (--sim): brake outputs, injected faults
         self.world_log: list[dict[str, Any]] = []
+        self.view_url: str | None = None  # the live view's address (foxglove_port)
 
     def stop(self) -> None:
         self._stop_requested = True
@@ -347,6 +351,8 @@ class LiveRun:
             raise LiveError("live needs --serial PORT (or --sim)")
         board: ArduinoBoard | None = None
         pipeline: Pipeline | None = None
+        view = watcher = None
+        finished = False
         recorder: ThreadedRecorder | None = None
         devices: list[tuple[str, Any]] = []
         metadata: dict[str, Any] = {}
@@ -383,6 +389,7 @@ class LiveRun:
             self._safe = SafeController(ctl, cal, opts.loop.safety)
             pipeline = Pipeline(loc, cal, reference_map=False)
             config = self._config(loc, ctl_cfg, initial, proposed)
+            latency = _Latency(self.clock)
             files: dict[str, Path] = {}
             if opts.record:
                 files["log"] = Path(opts.record)
@@ -390,6 +397,18 @@ class LiveRun:
                 recorder = ThreadedRecorder(
                     LogWriter(files["log"], cal, metadata={"config": config, **metadata})
                 )
+            record = recorder
+            on_command: Callable[[BrakeCommand, DepthFrame | LaserScan | None], None] = latency
+            if opts.foxglove_port is not None:
+                from experiments.live_view import FoxgloveView
+
+                view = FoxgloveView(
+                    cal, host=opts.foxglove_host, port=opts.foxglove_port, background=True
+                )
+                self.view_url = view.url
+                watcher = view.observer(pipeline)
+                record = _both(recorder, watcher.record)
+                on_command = _both(latency, watcher.on_command)
             self._sources = LiveSources(devices, self.clock, max_frames=opts.max_frames)
             if self._stop_requested:
                 self._sources.stop()
@@ -398,7 +417,6 @@ class LiveRun:
                 timer = threading.Timer(opts.duration_s, self._sources.stop)
                 timer.daemon = True
                 timer.start()
-            latency = _Latency(self.clock)
             last_status = [-math.inf]
 
             def progress(t: float) -> None:
@@ -414,14 +432,15 @@ class LiveRun:
                 pipeline,
                 self._safe,
                 opts.loop,
-                record=recorder,
+                record=record,
                 progress=progress,
-                on_command=latency,
+                on_command=on_command,
             )
             if timer is not None:
                 timer.cancel()
             duration = self.clock.now() - t_start
             ended = self._ended_by()
+            finished = True
         finally:
             # the brakes first, then the devices, then the log
             if board is not None:
@@ -446,7 +465,12 @@ class LiveRun:
             self._stop_world()
             if recorder is not None:
                 recorder.close()
+            if view is not None and not finished:
+                view.close()
         pipeline.rebuild_map()
+        if watcher is not None:
+            watcher.finish()
+            view.close()
         stats = self._sources.stats
         p50, p99 = latency.percentiles()
         return LiveResult(
@@ -529,7 +553,20 @@ class LiveRun:
             sigma_theta_deg=float(math.degrees(math.sqrt(max(cov[2, 2], 0.0)))),
             stale=safe.last_stale if safe is not None else (),
             events=list(self._events),
+            view_url=self.view_url,
         )
+
+
+def _both(first, second):
+    """Call `first` (if any), then `second`, with the same arguments."""
+    if first is None:
+        return second
+
+    def both(*args):
+        first(*args)
+        second(*args)
+
+    return both
 
 
 def run_live(

@@ -51,6 +51,8 @@ def status_line(s) -> str:
     stale = ",".join(s.stale) if s.stale else "-"
     stalled = f" stalled {','.join(s.stalled)}" if s.stalled else ""
     events = f" | {s.events[-1]}" if s.events else ""
+    if s.view_url:
+        events += f" | view {s.view_url}"
     return (
         f"{s.t:7.1f}s | {rates} | frame→cmd p50/p99 {lat} | brakes "
         f"{_fmt_nm(s.commanded_nm[0])}/{_fmt_nm(s.commanded_nm[1])} N·m PWM {pwm} | "
@@ -129,6 +131,10 @@ def register(app: typer.Typer) -> None:
         sim_duration: Annotated[
             float, typer.Option(help="--sim: longest simulated trial [s]")
         ] = 300.0,
+        foxglove: Annotated[
+            bool, typer.Option("--foxglove", help="serve the streams to Foxglove (WebSocket)")
+        ] = False,
+        foxglove_port: Annotated[int, typer.Option(help="--foxglove: port (0: any)")] = 8765,
     ) -> None:
         """Run a localizer and a braking controller live on the walker (or, with --sim, on
         the simulated walker in real time), recording everything; Ctrl-C stops and
@@ -175,6 +181,7 @@ def register(app: typer.Typer) -> None:
             localizer_overrides=sets.get(localizer, {}),
             controller_overrides=sets.get(controller, {}),
             sim=sim_walker,
+            foxglove_port=foxglove_port if foxglove else None,
         )
         with Live(
             Text("starting…"), console=err_console, auto_refresh=False, transient=False

@@ -148,7 +148,7 @@ from foxglove.messages import (
 
 from experiments.pipeline import Pipeline
 from hardware.calibration import WalkerCalibration
-from hardware.log import TOPICS, _encode
+from hardware.log import TOPICS, encode_parts
 from hardware.messages import (
     BrakeCommand,
     CameraIntrinsics,
@@ -471,7 +471,7 @@ class FoxgloveView:
         for cls, main in TOPICS.items():
             proto = _prototype(cls)
             if proto is not None:
-                parts = _encode(proto, main, 0)
+                parts = encode_parts(proto, main, 0)
                 self._parts[(cls, None)] = [self._channel(t, sch, main) for t, sch, _ in parts]
         c = self.config
         self._gates = {
@@ -607,7 +607,7 @@ class FoxgloveView:
             if not (math.isfinite(msg.t) and msg.t >= 0):
                 raise ValueError("message time must be finite and >= 0")
             main = topic or TOPICS[type(msg)]
-            parts = _encode(msg, main, _ns(msg.t))
+            parts = encode_parts(msg, main, _ns(msg.t))
         except (AttributeError, TypeError, ValueError, KeyError):
             self._count(f"not_encodable:{type(msg).__name__}")
             return False

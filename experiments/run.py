@@ -10,7 +10,7 @@ import json
 import math
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from importlib import metadata
 from pathlib import Path
@@ -137,6 +137,7 @@ def replay_log(
     drag_config: DragConfig | None = None,
     drag_metrics: bool = True,
     progress: Callable[[float], None] | None = None,
+    observers: Callable[[Pipeline], Sequence[Any]] | None = None,
 ) -> ReplayResult:
     """Run a recorded trial (a log path, an opened log or an opened dataset) through a
     localizer and the mapper; write estimates, maps, metrics against ground truth (when
@@ -152,6 +153,9 @@ def replay_log(
     over-steer) during the replay. Their time is left out of the real-time factor, but
     they also slow the loop itself (allocations, caches): compare and the benchmarks
     switch them off.
+    observers: given the pipeline, more observers of the message stream
+    (`experiments.drag.Observed`: before(msg), after(msg)), e.g. the live view's
+    (`FoxgloveView.observer`); their time is left out of the real-time factor too.
     localizer_config None: the localizer's defaults with the settings the source proposes
     (metadata "localizer_settings", e.g. a dataset's fitted noise levels; see
     `experiments.studies.settings.source_settings`); a config given is used as it is.
@@ -196,10 +200,12 @@ def replay_log(
         if steer_name is not None and pipeline.reference is not None and drag_metrics
         else None
     )
-    observers = [
+    watching = [
         o for o in (truth, phantom, frame_drag, recomputer, reference_commands) if o is not None
     ]
-    source = drag.Observed(trial.messages(), observers)
+    if observers is not None:
+        watching += list(observers(pipeline))
+    source = drag.Observed(trial.messages(), watching)
     t0 = time.perf_counter()
     pipeline.run(source, progress)
     runtime = time.perf_counter() - t0 - source.seconds  # the evaluation left out

@@ -186,6 +186,7 @@ __all__ = [
     "LogWriter",
     "TrialLog",
     "UnsupportedChannelWarning",
+    "encode_parts",
     "read_log",
     "replay",
 ]
@@ -399,8 +400,10 @@ def _camera_info_topic(topic: str) -> str:
     return topic.removesuffix("/image") + "/camera_info"
 
 
-def _encode(msg: Message, topic: str, ns: int) -> list[_Part]:
-    """MCAP messages for one message on `topic`: companions first, the main message last."""
+def encode_parts(msg: Message, topic: str, ns: int) -> list[_Part]:
+    """The channel messages of one message on `topic`, (topic, schema, payload) with its
+    companions first and the main message last, timestamps at `ns` — what the log writes
+    and the live view (experiments.live_view) serves."""
     if type(msg) in _FLAT:
         obj = {
             name: _TO_JSON[type_name](getattr(msg, name)) for name, type_name in _FIELDS[type(msg)]
@@ -556,7 +559,7 @@ class LogWriter:
         topic = topic or TOPICS[type(msg)]
         ns = _ns(msg.t)
         log_ns = ns if log_time is None else _ns(log_time)
-        parts = _encode(msg, topic, ns)  # encode outside the lock
+        parts = encode_parts(msg, topic, ns)  # encode outside the lock
         with self._lock:
             if self._closed:
                 raise ValueError(f"{self.path}: log writer is closed")

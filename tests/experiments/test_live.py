@@ -208,3 +208,39 @@ def test_live_needs_a_board(tmp_path):
         LiveRun(LiveOptions()).run()
     with pytest.raises(ValueError, match="unknown localizer"):
         LiveRun(LiveOptions(localizer="nope", serial="x")).run()
+
+
+@pytest.mark.slow
+def test_live_view_serves_the_running_walker_to_a_websocket_client(tmp_path):
+    from foxglove_client import Client
+
+    opts = sim_options(tmp_path, sim_s=6.0, foxglove_port=0)
+    bg = Background(opts)
+    bg.wait_until(0.5)
+    client = Client(bg.run.view_url)
+    try:
+        for topic in ("/encoders", "/depth/image", "/brakes/command", "/slam/pose", "/tf"):
+            client.wait_count(topic, 3)
+        res = bg.join()
+        _, depth = client.messages("/depth/image")[-1]
+        assert (depth.width, depth.height, depth.encoding) == (160, 120, "16UC1")
+        # the encoder ticks served are the ones the loop fed, counts and all
+        served = {(m["t"], m["left"], m["right"]) for _, m in client.messages("/encoders")}
+        fed = {
+            (m.t, m.left, m.right)
+            for m in read_log(opts.record).messages()
+            if isinstance(m, EncoderTicks)
+        }
+        assert served and served <= fed
+        _, pose = client.messages("/slam/pose")[-1]
+        est = res.pipeline.localizer.trajectory()
+        assert (
+            np.min(
+                np.hypot(
+                    est.poses[:, 0] - pose.pose.position.x, est.poses[:, 1] - pose.pose.position.y
+                )
+            )
+            < 1e-9
+        )
+    finally:
+        client.close()
