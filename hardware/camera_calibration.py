@@ -34,6 +34,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -300,7 +301,7 @@ class CheckerboardCalibration:
             lines.append(f"rejected (board not found): {', '.join(self.rejected)}")
         lines += [
             f"RMS reprojection error: {self.rms_px:.3f} px "
-            f"(worst image {self.used[worst]}: {self.per_image_rms_px[worst]:.3f} px)",
+            f"(worst {self.per_image_rms_px[worst]:.3f} px: {self.used[worst]})",
             f"fx {k[0, 0]:.2f}  fy {k[1, 1]:.2f}  cx {k[0, 2]:.2f}  cy {k[1, 2]:.2f} px",
             f"distortion ({self.camera.distortion_model}): " + " ".join(f"{x:.5g}" for x in d),
         ]
@@ -468,9 +469,25 @@ def _read_matrix(value: Any, key: str, fail, shape: tuple[int, int]) -> np.ndarr
         raise fail(f"{key} must be {shape[0]}x{shape[1]}, got {r}x{c}")
     if len(data) != r * c:
         raise fail(f"{key} is {r}x{c} but data has {len(data)} numbers")
-    if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in data):
+    numbers = [_number(x) for x in data]
+    if any(x is None for x in numbers):
         raise fail(f"{key}.data must contain only numbers")
-    return np.array(data, dtype=np.float64).reshape(shape)
+    return np.array(numbers, dtype=np.float64).reshape(shape)
+
+
+_FLOAT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?")
+
+
+def _number(x: Any) -> float | None:
+    """A YAML number, or a plain string that is one (PyYAML reads "1e-05", which YAML
+    1.1 has no float for and other writers produce, as a string)."""
+    if isinstance(x, bool):
+        return None
+    if isinstance(x, int | float):
+        return float(x)
+    if isinstance(x, str) and _FLOAT.fullmatch(x.strip()):
+        return float(x)
+    return None
 
 
 def _positive_int(value: Any, key: str, fail) -> int:
@@ -490,7 +507,15 @@ def _matrix_dict(m: np.ndarray) -> dict[str, Any]:
 
 
 def _num(x: float | int) -> str:
-    return str(x) if isinstance(x, int) else repr(float(x))
+    """A number as YAML 1.1 (PyYAML) reads back exactly: its floats need a dot in the
+    mantissa ("1e-05" would be a string), so that is written "1.0e-05"."""
+    if isinstance(x, int):
+        return str(x)
+    r = repr(float(x))
+    if "e" in r and "." not in r:
+        mantissa, exponent = r.split("e")
+        r = f"{mantissa}.0e{exponent}"
+    return r
 
 
 def _yaml_str(s: str) -> str:

@@ -461,6 +461,12 @@ def test_reads_a_ros_camera_info_file_without_tag_keys(tmp_path: Path) -> None:
     assert cam.intrinsics == CameraIntrinsics(640, 480, 531.2, 530.4, 319.1, 242.9)
     assert cam.tag_family is None and cam.tag_size_m is None
     assert with_tag_camera(CAL, cam).tag_size_m == CAL.tag_size_m
+    tiny = np.array([1e-05, -3.2e-07, 1e20, -0.0, 5e-324])  # exponents PyYAML must read
+    back = load_camera_yaml(CameraCalibration(640, 480, cam.camera_matrix, tiny).save(path))
+    np.testing.assert_array_equal(back.distortion, tiny)
+    assert np.signbit(back.distortion[3])
+    path.write_text(path.read_text().replace("1.0e-05", "1e-05"))  # as other writers put it
+    assert load_camera_yaml(path).distortion[0] == 1e-05
     cam8 = CameraCalibration(
         640, 480, cam.camera_matrix, np.arange(8) * 0.01, "rational_polynomial"
     )
