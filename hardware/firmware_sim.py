@@ -123,8 +123,9 @@ class SimEvent:
 @dataclass(frozen=True, slots=True)
 class BrakeState:
     """The brake outputs now: Timer1's compare registers, its compare output modes
-    (COM1x: 0 disconnected, 2 non-inverting PWM) and the duty measured on the pins
-    PB1/PB2 over the last PWM period (fraction high, 0-1), their levels."""
+    (COM1x: 0 disconnected, 2 non-inverting PWM), the duty measured on the pins PB1/PB2
+    over the last PWM period (fraction high, 0-1; the level while the pin is still),
+    their levels and PWM frequencies (0 while still)."""
 
     t_ns: int
     ocr_left: int
@@ -135,6 +136,8 @@ class BrakeState:
     pin_duty_right: float
     pin_left: int
     pin_right: int
+    pin_hz_left: float
+    pin_hz_right: float
 
     @property
     def left(self) -> int:
@@ -391,6 +394,8 @@ class FirmwareSim:
             float(f[6]),
             int(f[7]),
             int(f[8]),
+            float(f[9]),
+            float(f[10]),
         )
 
     def brake_outputs(self) -> tuple[float, int, int]:

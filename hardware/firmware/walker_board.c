@@ -349,8 +349,13 @@ static uint8_t crc8(const char *s, uint8_t len)
     return c;
 }
 
+/* The longest line the board can make is an S line with every counter at 10 digits:
+ * 92 bytes, beyond MAX_LINE (a host then counts it as too long, rather than reading
+ * a cut number); the buffer holds it whole. */
+#define OUT_SIZE 100
+
 typedef struct {
-    char buf[MAX_LINE + 8];
+    char buf[OUT_SIZE];
     uint8_t len;
 } out_line_t;
 
@@ -363,7 +368,7 @@ static void out_begin(out_line_t *o, char kind)
 static void out_str(out_line_t *o, const char *s)
 {
     o->buf[o->len++] = ',';
-    while (*s && o->len < MAX_LINE)
+    while (*s && o->len < OUT_SIZE - 5) /* room for '*CC\n' */
         o->buf[o->len++] = *s++;
 }
 
@@ -469,10 +474,11 @@ typedef struct {
     uint8_t len;
 } field_t;
 
-/* A field as the protocol allows: -?[0-9]{1,11}, then within [lo, hi]. */
-static uint8_t parse_int(field_t f, int64_t lo, int64_t hi, int64_t *out)
+/* A field as the protocol allows: -?[0-9]{1,11}, then within [lo, hi] (every host
+ * field is unsigned, so a minus sign only passes on a zero: "-0" is 0). */
+static uint8_t parse_u32(field_t f, uint32_t lo, uint32_t hi, uint32_t *out)
 {
-    uint8_t i = 0, neg = 0;
+    uint8_t i = 0, neg = 0, big = 0;
     if (f.len && f.s[0] == '-') {
         neg = 1;
         i = 1;
@@ -480,16 +486,17 @@ static uint8_t parse_int(field_t f, int64_t lo, int64_t hi, int64_t *out)
     uint8_t ndigits = (uint8_t)(f.len - i);
     if (ndigits < 1 || ndigits > 11)
         return 0;
-    int64_t v = 0;
+    uint32_t v = 0;
     for (; i < f.len; i++) {
         char c = f.s[i];
         if (c < '0' || c > '9')
             return 0;
-        v = v * 10 + (c - '0');
+        uint8_t d = (uint8_t)(c - '0');
+        if (v > 429496729UL || (v == 429496729UL && d > 5))
+            big = 1; /* beyond uint32: out of every range */
+        v = v * 10 + d;
     }
-    if (neg)
-        v = -v;
-    if (v < lo || v > hi)
+    if (big || (neg && v != 0) || v < lo || v > hi)
         return 0;
     *out = v;
     return 1;
@@ -595,7 +602,7 @@ static void handle_line(char *s, uint8_t len)
         rx_malformed++;
         return;
     }
-    int64_t a, b, c;
+    uint32_t a, b, c;
     switch (s[0]) {
     case 'Q':
         rx_lines++;
@@ -603,14 +610,14 @@ static void handle_line(char *s, uint8_t len)
         send_status();
         return;
     case 'B':
-        if (nfields < 3 || !parse_int(fields[0], 0, 0xFFFFFFFFLL, &a) ||
-            !parse_int(fields[1], 0, 255, &b) || !parse_int(fields[2], 0, 255, &c))
+        if (nfields < 3 || !parse_u32(fields[0], 0, 0xFFFFFFFFUL, &a) ||
+            !parse_u32(fields[1], 0, 255, &b) || !parse_u32(fields[2], 0, 255, &c))
             break;
         rx_lines++;
-        handle_brake((uint32_t)a, (uint8_t)b, (uint8_t)c);
+        handle_brake(a, (uint8_t)b, (uint8_t)c);
         return;
     case 'C':
-        if (nfields < 1 || !parse_int(fields[0], 1, MAX_RATE_HZ, &a))
+        if (nfields < 1 || !parse_u32(fields[0], 1, MAX_RATE_HZ, &a))
             break;
         rx_lines++;
         set_rate((uint16_t)a);
@@ -618,7 +625,7 @@ static void handle_line(char *s, uint8_t len)
         return;
 #ifdef WALKER_TEST_HOOKS
     case 'X':
-        if (nfields < 1 || !parse_int(fields[0], 1, 1, &a))
+        if (nfields < 1 || !parse_u32(fields[0], 1, 1, &a))
             break;
         rx_lines++;
         test_hang();

@@ -93,12 +93,16 @@ class Host:
         raise AssertionError(f"no {kind.__name__} line among {skip}")
 
     def query(self) -> tuple[bp.Handshake, bp.Status]:
-        """Q -> the H line and the line right after it, which must be S."""
+        """Q -> the reply: the next H line directly followed by an S line (an H on its
+        own is a C reply or a boot line)."""
         self.send(bp.Query())
         h = self.expect(bp.Handshake)
-        s = self.next()
-        assert isinstance(s, bp.Status), f"the line after H is {s!r}, not S"
-        return h, s
+        for _ in range(10):
+            after = self.next()
+            if isinstance(after, bp.Status):
+                return h, after
+            h = after if isinstance(after, bp.Handshake) else self.expect(bp.Handshake)
+        raise AssertionError("no H line followed by S")
 
     def drain(self) -> None:
         """Forget what the board sent so far."""
@@ -175,6 +179,14 @@ def nth(sim: fs.FirmwareSim, pred: Callable, n: int, since: int = 0) -> fs.SimEv
     return seen[n - 1]
 
 
+def both_done(sim: fs.FirmwareSim, since: int) -> int:
+    """When the last of both wheels' `steps` finished (ns)."""
+    return max(
+        sim.wait_for(lambda e, w=w: e.kind == "done" and e.args[0] == w, since=since).t_ns
+        for w in "LR"
+    )
+
+
 def first_tick_after(sim: fs.FirmwareSim, t_ns: int) -> fs.SimEvent:
     return nth(sim, lambda e: e.t_ns > t_ns and is_tx(bp.Tick)(e), 1)
 
@@ -189,7 +201,9 @@ def ticks_after(sim: fs.FirmwareSim, t_ns: int, n: int = 2) -> bp.Tick:
 def test_query_gets_handshake_then_status(sim, host):
     boot = sent(sim, bp.Handshake)
     assert [h for _, h in boot] == [bp.Handshake(1, "1.0.0", 100, 256, 1)]  # power-on
-    h, s = host.query()
+    host.send(bp.Query())
+    h = host.expect(bp.Handshake)
+    s = host.next()  # the line right after H
     assert h == bp.Handshake(proto=1, firmware="1.0.0", rate_hz=100, cpr=256, reset_flags=1)
     assert h.reset_cause == "power-on"
     assert s == bp.Status(1, 0, 0, 0, 0, 0, 0, 0)
@@ -215,9 +229,7 @@ def test_counts_every_edge_in_both_directions(sim, host):
     m = sim.mark()
     sim.steps("L", -250, period_us=70)
     sim.steps("R", 1200, period_us=40)
-    last = max(
-        sim.wait_for(lambda e, w=w: e.kind == "done" and e.args[0] == w, since=m).t_ns for w in "LR"
-    )
+    last = both_done(sim, m)
     t = ticks_after(sim, last)
     assert (t.left, t.right) == (750, 843) == sim.counts()
     assert t.flags & bp.TICK_QUAD_ERROR_FLAG == 0
@@ -225,9 +237,7 @@ def test_counts_every_edge_in_both_directions(sim, host):
     m = sim.mark()
     sim.steps("L", 3000, period_us=20)
     sim.steps("R", -3000, period_us=21)
-    last = max(
-        sim.wait_for(lambda e, w=w: e.kind == "done" and e.args[0] == w, since=m).t_ns for w in "LR"
-    )
+    last = both_done(sim, m)
     t = ticks_after(sim, last)
     assert (t.left, t.right) == (3750, -2157)
     assert host.query()[1].quad_errors == 0
@@ -256,6 +266,23 @@ def test_both_channels_at_once_is_a_quadrature_error(sim, host):
     assert (t.left, t.right) == (25, 7)
     assert host.query()[1].quad_errors == 2
     assert sum(1 for _, t in sent(sim, bp.Tick, m) if t.flags & bp.TICK_QUAD_ERROR_FLAG) == 2
+
+
+def test_set_counts_moves_the_wheels_to_the_true_counts(sim):
+    # what the live simulation does: its wheels' counts, 100-200 times a second
+    for i in range(1, 51):
+        sim.set_counts(7 * i, -3 * i)
+    sim.set_counts(400, -150)
+    t_set = sim.sim_time_ns()
+    t = ticks_after(sim, t_set + 60 * MS)  # 550 edges at 10 kHz take 55 ms
+    assert (t.left, t.right) == (400, -150) == sim.counts()
+    # edges at up to the given rate: 200 counts at 1 kHz take 200 ms
+    sim.set_counts(600, -150, max_rate_hz=1000)
+    t0 = sim.sim_time_ns()
+    early = ticks_after(sim, t0 + 100 * MS, n=1)  # sampled 87-110 ms after t0
+    assert 480 <= early.left <= 515
+    late = ticks_after(sim, t0 + 220 * MS)
+    assert (late.left, late.right) == (600, -150)
 
 
 # -- tick reports ------------------------------------------------------------------------
@@ -290,6 +317,10 @@ def check_rate(sim: fs.FirmwareSim, since: int, rate_hz: int, period_us: int) ->
 def test_tick_reports_at_100_hz(sim, host):
     m = sim.mark()
     check_rate(sim, m, 100, 10_000)
+    # a status line every second (the first 1 s after power-on, the time it takes to
+    # send it later), unasked
+    status = [t for t, _ in sent(sim, bp.Status)]
+    assert len(status) == 1 and 1000 * MS < status[0] < 1005 * MS
     # and over the pty, as a driver reads them: consecutive, with good checksums
     first = host.expect(bp.Tick)
     later = [host.expect(bp.Tick) for _ in range(20)]
@@ -341,6 +372,9 @@ def test_brake_outputs_follow_commands(sim, host):
                 assert duty == 0.0 and level == 0
             elif ocr < 255:  # simavr drops the pulse when OCR is TOP (255)
                 assert abs(duty - duty_of(ocr)) < 0.002
+        for ocr, hz in ((left, st.pin_hz_left), (right, st.pin_hz_right)):
+            if 0 < ocr < 255:  # 16 MHz / 64 / 256
+                assert abs(hz - 976.5625) < 0.2  # a cycle of jitter is 0.06 Hz
         tick = ticks_after(sim, ev.t_ns)
         assert (tick.pwm_left, tick.pwm_right) == (left, right)
         assert not tick.flags & bp.TICK_TIMEOUT_FLAG
@@ -421,6 +455,58 @@ def test_bad_lines_are_counted_and_never_acted_on(sim, host):
     assert sim.wait_for(lambda e: e.kind == "brake", since=m).args == ("5", "6", "2", "2")
     s = host.query()[1]
     assert (s.rx_lines, s.last_cmd_seq, s.rx_overflow, s.cmd_seq_gaps) == (4, 10, 2, 0)
+
+
+def with_crc(payload: bytes, crc: int | None = None, fmt: bytes = b"%02X") -> bytes:
+    return payload + b"*" + fmt % (bp.crc8(payload) if crc is None else crc) + b"\n"
+
+
+def test_lines_are_judged_as_the_host_codec_judges_them(sim, host):
+    lines = [
+        with_crc(b"B,0,-0,9"),  # "-0" is a number, 0
+        with_crc(b"B,4294967295,1,2"),
+        with_crc(b"B,00000000003,00000000255,0"),  # 11 digits
+        with_crc(b"B,5,7,8,12,x"),  # fields after the known ones are ignored
+        with_crc(b"B,6,11,12", fmt=b"%02x"),  # lower-case checksum
+        with_crc(b"Q,1"),
+        with_crc(b"C,100"),
+        with_crc(b"B,4294967296,1,2"),
+        with_crc(b"B,7,+5,2"),
+        with_crc(b"B,7,000000000255,2"),  # 12 digits
+        with_crc(b"B,,1,2"),
+        with_crc(b"B,7,2"),
+        with_crc(b"B"),
+        with_crc(b"C,501"),
+        with_crc(b"C,-1"),
+        with_crc(b"q"),
+        with_crc(b",1,2"),
+        with_crc(b""),
+        with_crc(b"B,7,1,2", crc=0x00 if bp.crc8(b"B,7,1,2") else 0x01),
+        with_crc(b"B,7,1,2")[:-4] + b"*G0\n",
+        with_crc(b"B,7,1,2," + b"9" * 70),
+    ]
+    verdict = {"ok": 0, "crc": 0, "malformed": 0, "overflow": 0}
+    for line in lines:
+        try:
+            bp.parse_host_line(line.rstrip(b"\n"))
+            verdict["ok"] += 1
+        except bp.LineError as e:
+            verdict[e.kind] += 1
+    assert min(verdict.values()) >= 1
+    m = sim.mark()
+    host.send(*lines)
+    host.expect(bp.Status)  # the reply to the Q,1 among them
+    h, s = host.query()
+    assert h.rate_hz == 100 and s.rx_lines == verdict["ok"] + 1
+    assert (s.rx_bad_crc, s.rx_malformed, s.rx_overflow) == (
+        verdict["crc"],
+        verdict["malformed"],
+        verdict["overflow"],
+    )
+    applied = [a[:2] for _, a in brake_events(sim, m)][:5]
+    assert applied == [(0, 9), (1, 2), (255, 0), (7, 8), (11, 12)]
+    # seq 0 -> 4294967295 went back (a new host count), -> 3 skipped 3, -> 5 one
+    assert (s.last_cmd_seq, s.cmd_seq_gaps) == (6, 4)
 
 
 # -- faults ------------------------------------------------------------------------------

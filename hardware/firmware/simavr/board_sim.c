@@ -50,9 +50,10 @@
  *                               by two steps forward, which the board cannot count)
  *   brakes                      OK <sim_ns> <ocr1a> <ocr1b> <com1a> <com1b>
  *                                  <duty_pb1> <duty_pb2> <level_pb1> <level_pb2>
+ *                                  <hz_pb1> <hz_pb2>
  *                               (duty: fraction of the last PWM period the pin was
  *                               high, or its constant level when it has not moved
- *                               for three periods)
+ *                               for three periods; hz: 1 / that period, 0 then)
  *   pins                        OK <PIND> <encoder line levels> <PD2 level> <PD4 level>
  *   uart                        OK <ubrr> <u2x> <baud> <cycles_per_byte>
  *   tx <on|off>                 OK; the `tx` events
@@ -488,11 +489,21 @@ static void pin_notify(avr_irq_t *irq, uint32_t value, void *param)
     m->last_edge = now;
 }
 
+static int pin_still(const pin_meter_t *m)
+{
+    return !m->valid || avr->cycle - m->last_edge > 3 * PWM_PERIOD;
+}
+
 static double pin_duty(const pin_meter_t *m)
 {
-    if (!m->valid || avr->cycle - m->last_edge > 3 * PWM_PERIOD)
+    if (pin_still(m))
         return (m->irq->value & 1) ? 1.0 : 0.0;
     return (double)m->high / (double)m->period;
+}
+
+static double pin_hz(const pin_meter_t *m)
+{
+    return pin_still(m) ? 0.0 : (double)avr->frequency / (double)m->period;
 }
 
 /* A disconnected compare output leaves the pin to PORTB (or to the pull-down
@@ -664,11 +675,12 @@ static void command(char *line)
         out("OK %u %u %u %u\n", avr->data[R_PIND], enc_levels, portd_irq[2]->value,
             portd_irq[4]->value);
     } else if (!strcmp(cmd, "brakes") && n == 1) {
-        out("OK %" PRIu64 " %u %u %u %u %.4f %.4f %u %u\n", cycles_to_ns(avr->cycle),
+        out("OK %" PRIu64 " %u %u %u %u %.4f %.4f %u %u %.2f %.2f\n", cycles_to_ns(avr->cycle),
             avr->data[R_OCR1AL] | avr->data[R_OCR1AH] << 8,
             avr->data[R_OCR1BL] | avr->data[R_OCR1BH] << 8, avr->data[R_TCCR1A] >> 6,
             (avr->data[R_TCCR1A] >> 4) & 3, pin_duty(&meters[0]), pin_duty(&meters[1]),
-            meters[0].irq->value & 1, meters[1].irq->value & 1);
+            meters[0].irq->value & 1, meters[1].irq->value & 1, pin_hz(&meters[0]),
+            pin_hz(&meters[1]));
     } else if (!strcmp(cmd, "uart") && n == 1) {
         uint32_t ubrr = avr->data[R_UBRR0L] | (uint32_t)(avr->data[R_UBRR0H] & 0x0F) << 8;
         int u2x = (avr->data[R_UCSR0A] >> BIT_U2X0) & 1;
