@@ -263,6 +263,8 @@ class FirmwareSim:
             self._cond.notify_all()
 
     def _why_dead(self) -> str:
+        if self._proc.poll() is not None:
+            self._errs.join(timeout=1.0)  # its last words
         tail = " | ".join(self._stderr)
         return f"{self._dead}" + (f" ({tail})" if tail else "")
 

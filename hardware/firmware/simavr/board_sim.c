@@ -5,7 +5,8 @@
  *   board_sim [-s SPEED] [-t] [-r EDGE_RATE_HZ] -l LINK FIRMWARE.elf
  *
  *   -l LINK   the path of a symlink to the pseudo-terminal bridged to UART0 (what a
- *             serial driver opens, as it would /dev/ttyACM0); replaced if it exists
+ *             serial driver opens, as it would /dev/ttyACM0); an old symlink there is
+ *             replaced, anything else is an error
  *   -s SPEED  simulated time per wall-clock time (default 1.0; 0 = as fast as it
  *             can). When the host cannot keep up, the simulation runs slower and
  *             never catches up by more than 100 ms in a burst.
@@ -224,7 +225,14 @@ static int pty_open(void)
     fcntl(m, F_SETFL, fcntl(m, F_GETFL) | O_NONBLOCK);
     fcntl(m, F_SETFD, FD_CLOEXEC);
     fcntl(s, F_SETFD, FD_CLOEXEC);
-    /* point the link at the slave atomically */
+    /* point the link at the slave atomically; never replace anything but a symlink */
+    struct stat st;
+    if (lstat(link_path, &st) == 0 && !S_ISLNK(st.st_mode)) {
+        close(m);
+        close(s);
+        errno = EEXIST;
+        return -1;
+    }
     char tmp[4096];
     snprintf(tmp, sizeof tmp, "%s.tmp%d", link_path, (int)getpid());
     unlink(tmp);
