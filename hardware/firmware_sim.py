@@ -23,6 +23,7 @@ the action makes sure an event that arrives early is not missed:
     m = sim.mark()
     port.write(Brake(1, 120, 0).line())
     ev = sim.wait_for(lambda e: e.kind == "brake" and e.args[0] == "120", since=m)
+    sim.wait_until(ev.t_ns + 300_000_000)     # an alarm in simulated time, not a sleep
 
 Event kinds (args are strings): "rx-nl" (n) each newline handed to the AVR's UART,
 "brake" (ocr1a, ocr1b, com1a, com1b) each change of the brake outputs, "tx" (the line)
