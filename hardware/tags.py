@@ -31,9 +31,8 @@ Detections are the same `hardware.messages.TagDetection` the simulated tag camer
   hardware/messages.py (corner 0 at the tag's (−s/2, +s/2), counter-clockwise in the
   image), and `camera_T_tag` re-projects onto them. `undistort_corners=False` reports
   the corners where they are in the captured image instead (the pose is the same).
-- `decision_margin` is pupil-apriltags' (the mean difference between the bit
-  intensities and the threshold; real detections of 0.05-0.2 m tags are ~25-100, false
-  positives usually < 20).
+- `decision_margin` is pupil-apriltags' (how far the sampled bits are from the
+  black/white threshold; 45-193 on the NASA photos, 60-93 on the Duckietown set).
 
 Measured on this machine (tests/hardware/test_tags.py): on rendered tags at 0.8-3 m
 (640×480, f ≈ 530 px) the corners are within 0.27 px of the truth (RMS 0.07 px, no
@@ -197,8 +196,9 @@ class TagDetector:
             quad_sigma=self.quad_sigma,
             refine_edges=int(self.refine_edges),
         )
-        self._detector.tag_detector_ptr.contents.decode_sharpening = self.decode_sharpening
         weakref.finalize(self, release_pupil_detector, self._detector)
+        # pupil-apriltags passes int(decode_sharpening): set the real value in the struct
+        self._detector.tag_detector_ptr.contents.decode_sharpening = self.decode_sharpening
 
     @classmethod
     def from_calibration(
@@ -226,6 +226,7 @@ class TagDetector:
             "threads": self.threads,
             "quad_sigma": self.quad_sigma,
             "refine_edges": self.refine_edges,
+            "decode_sharpening": self.decode_sharpening,
             "corners": "undistorted" if self.undistort_corners else "image",
             "pose": "cv2.solvePnP SOLVEPNP_IPPE_SQUARE on the undistorted corners"
             + (", refined by cv2.solvePnPRefineLM" if self.refine_pose else ""),
@@ -336,7 +337,8 @@ def _quiet_opencv() -> Iterator[None]:
 
 
 class VideoCaptureFrames:
-    """Frames of an OpenCV `VideoCapture`: a device index or a video file.
+    """Frames of an OpenCV `VideoCapture`: a device index or path (/dev/videoN) or a video
+    file.
 
     width, height: resolution to request from a device (it may not honour it; the tag
     camera source then reports the mismatch). fps: for a file, deliver at most this many
@@ -355,18 +357,19 @@ class VideoCaptureFrames:
     ) -> None:
         self.clock = clock
         self.fps = fps
-        if isinstance(target, int):
+        if isinstance(target, int) or Path(target).is_char_device():  # index or /dev/videoN
             self.kind, self.live, self.name = "device", True, str(target)
             with _quiet_opencv():
-                cap = cv2.VideoCapture(target)
+                cap = cv2.VideoCapture(target if isinstance(target, int) else str(target))
             if not cap.isOpened():
                 raise TagCameraError(f"tag camera {target}: cannot open video device {target}")
-            if width:
-                cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
-            if height:
-                cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
-            if fps:
-                cap.set(cv2.CAP_PROP_FPS, fps)
+            for prop, value in (
+                (cv2.CAP_PROP_FRAME_WIDTH, width),
+                (cv2.CAP_PROP_FRAME_HEIGHT, height),
+                (cv2.CAP_PROP_FPS, fps),
+            ):
+                if value:
+                    cap.set(prop, value)
         else:
             path = Path(target)
             self.kind, self.live, self.name = "video", False, str(path)

@@ -238,7 +238,7 @@ def test_duckietown_rotation_set_yaw() -> None:
     assert math.sqrt(np.mean(e**2)) < 4.0
     assert 0.5 < e.mean() < 3.5
     assert np.abs(e).max() < 9.0
-    assert min(margins) > 20.0
+    assert min(margins) > 40.0  # measured 60
     # Levenberg-Marquardt polishing (refine_pose) measured RMS 2.4°, max 4.7°.
     refined = TagDetector(k, 0.065, refine_pose=True)
     e2 = []
@@ -548,6 +548,8 @@ def test_image_folder_source_end_to_end(tmp_path: Path) -> None:
     assert meta["kind"] == "folder" and meta["images"] == 8 and meta["frame_policy"] == "every"
     assert meta["camera"]["camera_matrix"]["data"][0] == CAL.tag_intrinsics.fx
     src.close()  # again: harmless
+    with pytest.raises(RuntimeError, match="already iterated"):
+        src.messages()
 
 
 def test_video_file_source(tmp_path: Path) -> None:
@@ -700,6 +702,7 @@ def test_source_errors_are_one_line(tmp_path: Path) -> None:
     )
     one_line_error(lambda: open_tag_camera(57, CAL, clock), "cannot open video device 57")
     one_line_error(lambda: open_tag_camera(-1, CAL, clock), "must be >= 0")
+    one_line_error(lambda: open_tag_camera("/dev/null", CAL, clock), "cannot open video device")
     (tmp_path / "empty").mkdir()
     one_line_error(lambda: open_tag_camera(tmp_path / "empty", CAL, clock), "no images")
     (tmp_path / "clip.mp4").write_bytes(b"not a video")
