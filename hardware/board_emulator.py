@@ -81,10 +81,13 @@ class BoardEmulator:
             self._check_timeout(time.monotonic())
             return time.monotonic(), self._pwm[0], self._pwm[1]
 
-    def last_command_time(self) -> float | None:
-        """When the last valid brake command arrived (None: none yet)."""
+    def last_command(self) -> tuple[float, int, int] | None:
+        """(time, left duty, right duty) of the last valid brake command (None: none)."""
         with self._lock:
-            return self.commands[-1][0] if self.commands else None
+            if not self.commands:
+                return None
+            t, cmd = self.commands[-1]
+            return t, cmd.pwm_left, cmd.pwm_right
 
     # -- faults -----------------------------------------------------------------------
     def reset(self) -> None:
@@ -187,7 +190,8 @@ class BoardEmulator:
         )
 
     def _check_timeout(self, now: float) -> None:
-        if not self._timed_out and now - self._last_cmd > bp.COMMAND_TIMEOUT_S:
+        # checked every few ms: a little early, so that it releases within the 300 ms
+        if not self._timed_out and now - self._last_cmd > bp.COMMAND_TIMEOUT_S - 0.005:
             self._timed_out = True
             self._pwm = (0, 0)
             self.cmd_timeouts += 1

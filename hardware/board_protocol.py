@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 PROTOCOL_VERSION = 1
 BAUD = 115200
-MAX_LINE = 80  # bytes of a line, '*CC' included, '\n' not
+MAX_LINE = 96  # bytes of a line, '*CC' included, '\n' not (the longest S line: 92)
 TICK_TIMEOUT_FLAG = 0x01  # T flags bit 0: no valid B line within 300 ms (brakes released)
 TICK_QUAD_ERROR_FLAG = 0x02  # T flags bit 1: a quadrature error since the last report
 COMMAND_TIMEOUT_S = 0.3  # the board releases both brakes this long after the last B line

@@ -421,7 +421,27 @@ class FirmwareSim:
     def set_tx_events(self, on: bool) -> None:
         self._request("tx on" if on else "tx off")
 
+    def last_command(self) -> tuple[float, int, int] | None:
+        """The last line the board received (time its newline reached the UART, in
+        simulated s) and the duties right after it (the firmware applies a brake command
+        0.26 ms after its newline); None before any."""
+        received = self.events(kind="rx-nl")
+        if not received:
+            return None
+        t_ns = received[-1].t_ns
+        left = right = 0
+        for e in self.events(kind="brake"):
+            if e.t_ns > t_ns + 1_000_000:
+                break
+            a, b, com_a, com_b = (int(v) for v in e.args[:4])
+            left, right = (a if com_a else 0), (b if com_b else 0)
+        return t_ns * 1e-9, left, right
+
     # -- faults ----------------------------------------------------------------------
+    def inject(self, data: bytes) -> None:
+        """Bytes to the host as if the board had sent them (garbage on the line)."""
+        self._request(f"inject {bytes(data).hex()}")
+
     def reset(self) -> int:
         """An external reset of the MCU (the pins keep their levels); its sim time (ns)."""
         return int(self._request("reset")[0])

@@ -27,9 +27,10 @@
  *  - Tick reports: a report is sampled every period; if the TX ring has no room for
  *    it when the main loop formats it (the rate asks for more than the UART can
  *    carry), it is dropped, and its seq is skipped, so the host sees the gap.
- *  - Command timeout: a valid B line restarts a millisecond counter; when it passes
- *    300 ms both duties go to 0 (in the 1 ms interrupt, so a slow main loop cannot
- *    delay it). cmd_timeouts counts the timeouts that released a non-zero duty.
+ *  - Command timeout: a valid B line restarts a millisecond counter; at its 299th
+ *    tick (298-299 ms later: within 300 ms of the command's newline, whatever the
+ *    phase of the millisecond clock) both duties go to 0 (in the 1 ms interrupt, so
+ *    a slow main loop cannot delay it). cmd_timeouts counts the timeouts that released a non-zero duty.
  *  - cmd_seq_gaps: a B line whose seq is ahead of the previous one by d (modulo
  *    2^32, d < 2^31) adds d - 1; a seq that did not move forward (a restarted host)
  *    adds nothing.
@@ -70,7 +71,7 @@
 #define MAX_RATE_HZ 500
 #define CMD_TIMEOUT_MS 300
 #define STATUS_PERIOD_MS 1000
-#define MAX_LINE 80 /* bytes of a line, '*CC' included, '\n' not */
+#define MAX_LINE 96 /* bytes of a line, '*CC' included, '\n' not (an S line: <= 92) */
 
 #define ENC_MASK (_BV(PD2) | _BV(PD3) | _BV(PD4) | _BV(PD5))
 
@@ -234,7 +235,9 @@ static uint32_t now_us(void)
 ISR(TIMER2_COMPA_vect)
 {
     us_at_tick += 1000u;
-    if (!cmd_timed_out && ++cmd_age_ms > CMD_TIMEOUT_MS) {
+    /* the tick that makes the age CMD_TIMEOUT_MS - 1 comes 298-299 ms after the
+     * command was parsed: released within 300 ms of its newline, whatever the phase */
+    if (!cmd_timed_out && ++cmd_age_ms >= CMD_TIMEOUT_MS - 1) {
         if (pwm_left || pwm_right)
             cmd_timeouts++;
         brakes_apply(0, 0);
@@ -350,8 +353,7 @@ static uint8_t crc8(const char *s, uint8_t len)
 }
 
 /* The longest line the board can make is an S line with every counter at 10 digits:
- * 92 bytes, beyond MAX_LINE (a host then counts it as too long, rather than reading
- * a cut number); the buffer holds it whole. */
+ * 92 bytes, within MAX_LINE; the buffer holds it whole. */
 #define OUT_SIZE 100
 
 typedef struct {

@@ -48,7 +48,7 @@ def test_documented_example_line():
         (b"T,1,2,3,4,5,6,7*00", "crc"),
         (b"T,1,2,3,4,5,6,7", "malformed"),  # no checksum
         (b"garbage", "malformed"),
-        (b"x" * 90, "overflow"),
+        (b"x" * 120, "overflow"),
     ],
 )
 def test_bad_lines_are_classified(line, kind):

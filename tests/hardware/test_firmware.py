@@ -382,14 +382,14 @@ def test_brake_outputs_follow_commands(sim, host):
     assert len(brake_events(sim)) == len(cases)
 
 
-def test_command_timeout_releases_after_300_ms(sim, host):
+def test_command_timeout_releases_within_300_ms(sim, host):
     m = sim.mark()
     t_cmd = send_and_stamp(sim, host, bp.Brake(1, 180, 90))
     applied = sim.wait_for(lambda e: e.kind == "brake", since=m)
     assert applied.args == ("180", "90", "2", "2")
     rel = sim.wait_for(released, since=m)
     dt_ms = (rel.t_ns - t_cmd) / MS
-    assert 300.0 <= dt_ms <= 301.5, dt_ms
+    assert 298.0 <= dt_ms <= 300.0, dt_ms  # within 300 ms, not much before
     t = ticks_after(sim, rel.t_ns)
     assert t.flags & bp.TICK_TIMEOUT_FLAG and (t.pwm_left, t.pwm_right) == (0, 0)
     s = host.query()[1]
@@ -406,7 +406,7 @@ def test_resending_every_100_ms_keeps_the_brakes(sim, host):
     assert max(gaps) < 250, f"the test could not keep its 100 ms pace: {gaps}"
     assert [a for _, a in brake_events(sim, m)] == [(120, 60, 2, 2)]  # applied, never released
     rel = sim.wait_for(released, since=m)
-    assert 300.0 <= (rel.t_ns - stamps[-1]) / MS <= 301.5
+    assert 298.0 <= (rel.t_ns - stamps[-1]) / MS <= 300.0
     s = host.query()[1]
     assert (s.rx_lines, s.cmd_timeouts, s.cmd_seq_gaps, s.last_cmd_seq) == (11, 1, 0, 10)
     # missing sequence numbers are counted; a host that restarts its count is not a gap
@@ -432,10 +432,11 @@ def test_bad_lines_are_counted_and_never_acted_on(sim, host):
         b"\x00\xff\xfe*\n",  # binary garbage
         good[:-4] + b"*2\n",  # one-digit checksum
     ]
-    # extra fields are ignored, so a B line can be padded to the 80-byte limit
-    longest = bp.encode("B", 9, 33, 44, "1" * 67)
+    # extra fields are ignored, so a B line can be padded to the length limit
+    pad = bp.MAX_LINE - len(b"B,9,33,44,*CC")
+    longest = bp.encode("B", 9, 33, 44, "1" * pad)
     assert len(longest) == bp.MAX_LINE + 1
-    payload = b"B,9,33,44," + b"1" * 68  # one byte more, with a good checksum
+    payload = b"B,9,33,44," + b"1" * (pad + 1)  # one byte more, with a good checksum
     overflow = [payload + b"*%02X\n" % bp.crc8(payload), b"B,8," + b"1" * 200 + b"\n"]
     noise = [b"\n", b"\r\n"]  # empty lines are not lines
     m = sim.mark()
@@ -483,7 +484,7 @@ def test_lines_are_judged_as_the_host_codec_judges_them(sim, host):
         with_crc(b""),
         with_crc(b"B,7,1,2", crc=0x00 if bp.crc8(b"B,7,1,2") else 0x01),
         with_crc(b"B,7,1,2")[:-4] + b"*G0\n",
-        with_crc(b"B,7,1,2," + b"9" * 70),
+        with_crc(b"B,7,1,2," + b"9" * (bp.MAX_LINE - 10)),  # one byte over the limit
     ]
     verdict = {"ok": 0, "crc": 0, "malformed": 0, "overflow": 0}
     for line in lines:
@@ -587,7 +588,7 @@ def test_unplug_replug_keeps_the_firmware_running(sim, host):
     # the MCU goes on: it counts, and its command timeout releases the brakes
     done = sim.steps("L", 500, period_us=100, wait=True)
     rel = sim.wait_for(released, since=m)
-    assert 300.0 <= (rel.t_ns - t_cmd) / MS <= 301.5
+    assert 298.0 <= (rel.t_ns - t_cmd) / MS <= 300.0
     slave = sim.replug()
     assert os.path.realpath(sim.port) == slave
     host2 = Host(sim.port)

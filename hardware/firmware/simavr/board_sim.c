@@ -68,6 +68,8 @@
  *                               (rx: host -> AVR bytes handed over / lost while the
  *                               receiver was off; tx: AVR -> pty bytes / lost while
  *                               unplugged or while nobody read the port)
+ *   inject <hex>                OK <n>; n bytes to the host as if the AVR had sent them
+ *                               (garbage on the line; mid-line if the AVR is sending)
  *   quit                        OK, then exit (also on EOF of stdin and SIGTERM)
  *
  *   E <ns> ready <link> <slave>     once, before any reply
@@ -91,6 +93,7 @@
  */
 
 #define _GNU_SOURCE
+#include <ctype.h>
 #include <errno.h>
 #include <fcntl.h>
 #include <getopt.h>
@@ -631,8 +634,33 @@ static int wheel_index(const char *s)
     return -1;
 }
 
+/* "inject <hex>": bytes to the host as if the AVR had sent them (garbage on the line). */
+static int inject(const char *hex)
+{
+    size_t k = 0;
+    unsigned v;
+    while (hex[0] && hex[1] && isxdigit((unsigned char)hex[0]) &&
+           isxdigit((unsigned char)hex[1]) && sscanf(hex, "%2x", &v) == 1) {
+        if (pty_master >= 0 && ring_free(&host_tx))
+            ring_put(&host_tx, (uint8_t)v);
+        hex += 2;
+        k++;
+    }
+    while (*hex == ' ' || *hex == '\r' || *hex == '\n')
+        hex++;
+    return *hex ? -1 : (int)k;
+}
+
 static void command(char *line)
 {
+    if (!strncmp(line, "inject ", 7)) {
+        int k = inject(line + 7);
+        if (k < 0)
+            out("ERR usage: inject HEX (pairs of hexadecimal digits)\n");
+        else
+            out("OK %d\n", k);
+        return;
+    }
     char cmd[16] = "", a1[32] = "", a2[32] = "", a3[32] = "", extra[2] = "";
     int n = sscanf(line, "%15s %31s %31s %31s %1s", cmd, a1, a2, a3, extra);
     if (n <= 0)
