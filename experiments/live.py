@@ -503,6 +503,9 @@ class LiveRun:
         return {
             "command": "live",
             "walker_slam_version": VERSION,
+            # the run's clock: t = time.monotonic() - host_clock_start (to line a recording
+            # up with other processes of the machine)
+            "host_clock_start": self.clock.start,
             "initial_pose": list(initial),
             "localizer": opts.localizer,
             "localizer_config": _jsonable(loc.config),

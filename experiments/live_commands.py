@@ -35,6 +35,26 @@ def _stop_on_signals(stop):
             signal.signal(s, h)
 
 
+@contextmanager
+def _status_display(console, live_type, text_type):
+    """A status line that updates in place; it appears with the first update (so that an
+    error before it is one line of its own) and is cleared at the end."""
+    view = None
+
+    def show(line: str) -> None:
+        nonlocal view
+        if view is None:
+            view = live_type(console=console, auto_refresh=False, transient=True)
+            view.start()
+        view.update(text_type(line), refresh=True)
+
+    try:
+        yield show
+    finally:
+        if view is not None:
+            view.stop()
+
+
 def _fmt_nm(v: float) -> str:
     return "—" if not math.isfinite(v) else f"{v:.2f}"
 
@@ -183,10 +203,8 @@ def register(app: typer.Typer) -> None:
             sim=sim_walker,
             foxglove_port=foxglove_port if foxglove else None,
         )
-        with Live(
-            Text("starting…"), console=err_console, auto_refresh=False, transient=False
-        ) as view:
-            run = LiveRun(opts, on_status=lambda s: view.update(Text(status_line(s)), refresh=True))
+        with _status_display(err_console, Live, Text) as show:
+            run = LiveRun(opts, on_status=lambda s: show(status_line(s)))
             with _stop_on_signals(run.stop):
                 res = run.run()
         lat = res.latency_ms
@@ -198,9 +216,10 @@ def register(app: typer.Typer) -> None:
             f"{res.board['bad_lines']} bad lines, {res.board['seq_gaps']} sequence gaps, "
             f"{res.board['resets']} resets, {res.board['reconnects']} reconnects",
             highlight=False,
+            soft_wrap=True,
         )
         if "log" in res.files:
-            console.print(f"recorded → {res.files['log']}", highlight=False)
+            console.print(f"recorded → {res.files['log']}", highlight=False, soft_wrap=True)
 
     @app.command()
     @friendly
@@ -235,19 +254,16 @@ def register(app: typer.Typer) -> None:
                 raise ValueError(f"{calibration}: not a walker calibration: {e}") from None
         stop = threading.Event()
 
-        def show(r) -> None:
+        def reading(r) -> str:
             pwm = "—" if r.pwm is None else f"{r.pwm[0]}/{r.pwm[1]}"
             s = r.stats
-            view.update(
-                Text(
-                    f"{r.t:7.1f}s  left {r.counts[0]:>9d}  right {r.counts[1]:>9d}  "
-                    f"{r.rate_hz:5.0f} Hz  PWM {pwm}{' (timed out)' if r.timed_out else ''}  "
-                    f"bad lines {s.bad_lines}  gaps {s.seq_gaps}  resets {s.resets}"
-                ),
-                refresh=True,
+            return (
+                f"{r.t:7.1f}s  left {r.counts[0]:>9d}  right {r.counts[1]:>9d}  "
+                f"{r.rate_hz:5.0f} Hz  PWM {pwm}{' (timed out)' if r.timed_out else ''}  "
+                f"bad lines {s.bad_lines}  gaps {s.seq_gaps}  resets {s.resets}"
             )
 
-        with Live(Text("connecting…"), console=err_console, auto_refresh=False) as view:
+        with _status_display(err_console, Live, Text) as show:
             with _stop_on_signals(stop.set):
                 res = bench_board(
                     port,
@@ -255,7 +271,7 @@ def register(app: typer.Typer) -> None:
                     duration_s=duration,
                     record=str(record) if record else None,
                     brake_nm=brake_nm,
-                    on_update=show,
+                    on_update=lambda r: show(reading(r)),
                     stop=stop,
                 )
         hs = res.handshake
@@ -265,6 +281,7 @@ def register(app: typer.Typer) -> None:
             f"{res.duration_s:.1f} s, counts left {res.counts[0]} right {res.counts[1]}; "
             f"brakes released",
             highlight=False,
+            soft_wrap=True,
         )
         if "log" in res.files:
-            console.print(f"recorded → {res.files['log']}", highlight=False)
+            console.print(f"recorded → {res.files['log']}", highlight=False, soft_wrap=True)

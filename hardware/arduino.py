@@ -46,6 +46,7 @@ What it does with the board's lines (`hardware/firmware/PROTOCOL.md`):
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from collections import deque
@@ -502,5 +503,8 @@ class ArduinoBoard:
 
 
 def _reason(e: BaseException) -> str:
-    text = str(e).splitlines()[0] if str(e) else type(e).__name__
-    return text.removeprefix("[Errno 2] ")
+    """What went wrong opening a port, without pyserial's repetition of its name."""
+    errno = getattr(e, "errno", None)
+    if isinstance(errno, int) and errno > 0:
+        return os.strerror(errno)
+    return str(e).splitlines()[0] if str(e) else type(e).__name__

@@ -14,10 +14,13 @@ It talks to whoever started it through JSON lines on stdout:
 
     {"event": "ready", "port": ..., "socket": ..., "physics_rate_hz": ...}
     {"event": "connected"}                      the live process connected to the socket
-    {"event": "brakes", "t": mono, "sim_t": s, "board_t": s, "left": duty, "right": duty}
-                                                every change of the board's brake outputs
-                                                (board_t: the board's own clock — simavr's
-                                                simulated time with the firmware)
+    {"event": "brakes", "t": mono, "sim_t": s, "board_t": s, "left": duty, "right": duty,
+     "last_command_t": s, "last_command_pwm": [l, r]}
+                                                every change of the board's brake outputs,
+                                                and the last valid command it had received
+                                                (board_t, last_command_t: the board's own
+                                                clock — simavr's simulated time with the
+                                                firmware)
     {"event": "done", "finished": bool, "sim_t": s, "sent": {type: n}, "dropped": {type: n}}
                                                 the user finished (or the duration); the
                                                 records sent to the live process and the
@@ -249,7 +252,7 @@ def _run(sim: Simulator, board, conn: Sender, stop: dict) -> None:
                 t=time.monotonic(),
                 sim_t=sim.t,
                 board_t=board_t,
-                last_command_t=board.last_command_time(),
+                **_last_command(board),
                 left=left,
                 right=right,
             )
@@ -265,6 +268,14 @@ def _run(sim: Simulator, board, conn: Sender, stop: dict) -> None:
         sent=conn.sent,
         dropped=conn.dropped,
     )
+
+
+def _last_command(board) -> dict:
+    """The board's last valid brake command: its time on the board's clock and duties."""
+    last = board.last_command()
+    if last is None:
+        return {"last_command_t": None, "last_command_pwm": None}
+    return {"last_command_t": last[0], "last_command_pwm": [last[1], last[2]]}
 
 
 def _command(timeout: float = 0.0) -> str:
@@ -289,7 +300,7 @@ def _wait_for_quit(board, stop: dict) -> None:
                 event="brakes",
                 t=time.monotonic(),
                 board_t=board_t,
-                last_command_t=board.last_command_time(),
+                **_last_command(board),
                 left=left,
                 right=right,
             )

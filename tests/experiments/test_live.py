@@ -93,15 +93,23 @@ def sim_options(tmp_path, **kw):
         "localizer": "dead-reckoning",
         "controller": "open-loop",
         "record": str(tmp_path / "live.mcap"),
-        "sim": SimWalker(duration_s=kw.pop("sim_s", 8.0), seed=kw.pop("seed", 1)),
+        "sim": SimWalker(
+            duration_s=kw.pop("sim_s", 8.0),
+            seed=kw.pop("seed", 1),
+            firmware=kw.pop("board", "emulator") == "firmware",
+        ),
     }
     base.update(kw)
     return LiveOptions(**base)
 
 
+BOARDS = pytest.mark.parametrize("board", ["emulator", "firmware"])
+
+
 @pytest.mark.slow
-def test_live_sim_records_and_replay_reproduces_the_live_run(tmp_path):
-    opts = sim_options(tmp_path, localizer="ekf-slam", sim_s=8.0)
+@BOARDS
+def test_live_sim_records_and_replay_reproduces_the_live_run(tmp_path, board):
+    opts = sim_options(tmp_path, localizer="ekf-slam", sim_s=8.0, board=board)
     bg = Background(opts)
     res = bg.join()
     assert res.ended_by.startswith("the simulated trial ended")
@@ -112,7 +120,8 @@ def test_live_sim_records_and_replay_reproduces_the_live_run(tmp_path):
     ticks = [m for m in msgs if isinstance(m, EncoderTicks)]
     # every encoder report the driver decoded reached the loop and the log: none dropped
     assert len(ticks) == res.board["ticks"] > 700
-    assert res.board["bad_lines"] == 0 and res.board["seq_gaps"] == 0
+    # (the firmware may be mid-line when the port opens: at most that line is bad)
+    assert res.board["bad_lines"] <= (board == "firmware") and res.board["seq_gaps"] == 0
     # every frame the walker sent arrived; the ones the loop had no time for were dropped
     # and counted, the rest fed and recorded
     sent = next(e for e in bg.run.world_log if e["event"] == "done")["sent"]
@@ -138,8 +147,9 @@ def test_live_sim_records_and_replay_reproduces_the_live_run(tmp_path):
 
 
 @pytest.mark.slow
-def test_faults_unplug_garbage_reset_and_a_camera_stall(tmp_path):
-    opts = sim_options(tmp_path, controller="hold-test", sim_s=14.0)
+@BOARDS
+def test_faults_unplug_garbage_reset_and_a_camera_stall(tmp_path, board):
+    opts = sim_options(tmp_path, controller="hold-test", sim_s=14.0, board=board)
     bg = Background(opts)
     bg.wait_until(2.0)
     bg.run.world_command("garble")
