@@ -30,7 +30,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +81,7 @@ class LiveOptions:
     depth: str = "none"  # kinect, realsense, fakenect:DIR, sim:SOCKET (a simulated walker)
     camera: str = "none"  # a device index, a video file or folder, kinect; "sim" with sim:
     camera_yaml: str | None = None
+    camera_fps: float | None = None  # pace a tag-camera video file or image folder
     calibration: str | None = None  # a JSON file of WalkerCalibration fields
     record: str | None = None
     duration_s: float | None = None
@@ -311,15 +312,9 @@ class LiveRun:
             except (ValueError, TypeError) as e:
                 raise LiveError(f"{path}: not a walker calibration: {e}") from None
         if opts.camera_yaml:
-            from hardware.camera_calibration import load_camera_yaml
+            from hardware.camera_calibration import load_camera_yaml, with_tag_camera
 
-            cam = load_camera_yaml(opts.camera_yaml)
-            cal = replace(
-                cal,
-                tag_intrinsics=cam.intrinsics,
-                tag_size_m=cam.tag_size_m,
-                tag_family=cam.tag_family,
-            )
+            cal = with_tag_camera(cal, load_camera_yaml(opts.camera_yaml))
         return cal
 
     def _devices(self, cal: WalkerCalibration) -> list[tuple[str, Any]]:
@@ -335,7 +330,13 @@ class LiveRun:
             devices.append(
                 (
                     "tags",
-                    open_tag_camera(opts.camera, cal, self.clock, camera_yaml=opts.camera_yaml),
+                    open_tag_camera(
+                        opts.camera,
+                        cal,
+                        self.clock,
+                        camera_yaml=opts.camera_yaml,
+                        fps=opts.camera_fps,
+                    ),
                 )
             )
         return devices

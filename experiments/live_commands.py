@@ -89,8 +89,27 @@ def _parse_pair(text: str, what: str) -> tuple[float, float]:
     return a, b
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
+
+
+def image_files(paths: list[Path]) -> list[Path]:
+    """The image files named, a folder standing for the images in it (sorted)."""
+    out: list[Path] = []
+    for p in paths:
+        if p.is_dir():
+            found = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
+            if not found:
+                raise ValueError(f"{p}: no images in the folder ({', '.join(IMAGE_SUFFIXES)})")
+            out.extend(found)
+        elif not p.exists():
+            raise FileNotFoundError(f"{p}: no such image")
+        else:
+            out.append(p)
+    return out
+
+
 def register(app: typer.Typer) -> None:
-    """Add `live` and `board` to `app` (the `walkerslam` CLI)."""
+    """Add `live`, `board` and `calibrate-camera` to `app` (the `walkerslam` CLI)."""
     from rich.live import Live
     from rich.text import Text
 
@@ -116,6 +135,10 @@ def register(app: typer.Typer) -> None:
         camera_calibration: Annotated[
             Path | None,
             typer.Option(help="the tag camera's calibration YAML (walkerslam calibrate-camera)"),
+        ] = None,
+        camera_fps: Annotated[
+            float | None,
+            typer.Option(help="pace a tag-camera video file or image folder to this rate"),
         ] = None,
         calibration: Annotated[
             Path | None, typer.Option(help="walker calibration JSON (default: the thesis walker)")
@@ -195,6 +218,7 @@ def register(app: typer.Typer) -> None:
             depth=depth,
             camera=camera,
             camera_yaml=str(camera_calibration) if camera_calibration else None,
+            camera_fps=camera_fps,
             calibration=str(calibration) if calibration else None,
             record=str(record) if record else None,
             duration_s=duration,
@@ -285,3 +309,45 @@ def register(app: typer.Typer) -> None:
         )
         if "log" in res.files:
             console.print(f"recorded → {res.files['log']}", highlight=False, soft_wrap=True)
+
+    @app.command(name="calibrate-camera")
+    @friendly
+    def calibrate_camera_cmd(
+        images: Annotated[
+            list[Path], typer.Argument(help="photos of a checkerboard (files or folders)")
+        ],
+        board: Annotated[
+            str, typer.Option(help="inner corners COLSxROWS, e.g. 9x6 for 10x7 squares")
+        ] = "9x6",
+        square: Annotated[float, typer.Option(help="side of a square [m]")] = 0.025,
+        output: Annotated[
+            Path, typer.Option("-o", "--output", help="camera calibration YAML to write")
+        ] = Path("camera.yaml"),
+        tag_size: Annotated[
+            float | None, typer.Option(help="side of the AprilTags it will see [m]")
+        ] = None,
+        tag_family: Annotated[str | None, typer.Option(help="their family")] = None,
+        camera_name: Annotated[str, typer.Option(help="name written in the YAML")] = "camera",
+        min_images: Annotated[int, typer.Option(help="fewest usable images")] = 5,
+    ) -> None:
+        """Calibrate a camera from checkerboard photos (OpenCV); print the RMS
+        reprojection error and write the YAML that `walkerslam live
+        --camera-calibration` reads."""
+        from hardware.camera_calibration import calibrate_camera
+
+        try:
+            cols, rows = (int(v) for v in board.lower().split("x"))
+        except ValueError:
+            raise ValueError(f"--board takes COLSxROWS inner corners, got '{board}'") from None
+        files = image_files(images)
+        res = calibrate_camera(
+            [str(f) for f in files],
+            (cols, rows),
+            square,
+            min_images=min_images,
+            camera_name=camera_name,
+        )
+        for line in res.summary_lines():
+            console.print(line, highlight=False, soft_wrap=True)
+        path = res.save(output, camera_name=camera_name, tag_family=tag_family, tag_size_m=tag_size)
+        console.print(f"wrote {path}", highlight=False, soft_wrap=True)

@@ -176,3 +176,39 @@ def test_errors_are_one_line(views, tmp_path: Path) -> None:
     one_line(lambda: calibrate_camera(images[:5], BOARD, 0.0), "square size")
     one_line(lambda: calibrate_camera([], BOARD, SQUARE), "no images")
     one_line(lambda: calibrate_camera([images[0].astype(float)], BOARD, SQUARE), "uint8")
+
+
+def test_the_cli_command_calibrates_from_a_folder_and_writes_the_yaml(views, tmp_path: Path):
+    import subprocess
+    import sys
+
+    images, _ = views
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for i, img in enumerate(images):
+        cv2.imwrite(str(folder / f"view_{i:02d}.png"), img)
+    cv2.imwrite(str(folder / "wall.png"), np.full((480, 640), 120, np.uint8))
+    out = tmp_path / "camera.yaml"
+    cmd = [str(Path(sys.executable).parent / "walkerslam"), "calibrate-camera", str(folder)]
+    args = ["--board", "9x6", "--square", "0.025", "-o", str(out), "--tag-size", "0.165"]
+    r = subprocess.run([*cmd, *args], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "images used: 14 of 15" in r.stdout and "wall.png" in r.stdout
+    rms = float(r.stdout.split("RMS reprojection error: ")[1].split()[0])
+    assert rms < 0.5 and f"wrote {out}" in r.stdout
+    cam = load_camera_yaml(out)
+    assert abs(cam.camera_matrix[0, 0] / TRUE.camera_matrix[0, 0] - 1) < 0.002
+    assert cam.tag_size_m == 0.165
+    # bad input: one line naming what is wrong, exit code 2
+    for bad, what in [
+        (["--board", "9by6"], "COLSxROWS"),
+        (["--board", "7x5"], "images"),
+        (["--square", "-1"], "square"),
+    ]:
+        r = subprocess.run([*cmd, *bad, "-o", str(tmp_path / "x.yaml")], capture_output=True,
+                           text=True, timeout=120)  # fmt: skip
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and what in lines[0], r.stderr
+    r = subprocess.run([cmd[0], "calibrate-camera", str(tmp_path / "none")], capture_output=True,
+                       text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 2 and "no such image" in r.stderr

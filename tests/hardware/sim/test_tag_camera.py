@@ -14,6 +14,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.frames import invert_transform, planar_pose_to_transform
 from hardware.sim.tag_camera import SimTagCamera, TagCameraConfig, tag_object_points
 from hardware.sim.world import Box, Obstacle, TagPose, World
+from hardware.tags import release_pupil_detector
 
 CAL = WalkerCalibration()
 TAG_SIZE = CAL.tag_size_m
@@ -166,9 +167,12 @@ def test_matches_pupil_apriltags_convention(pose: tuple[float, float, float]) ->
     img = render_tag(sim.camera_T_tag, tag_id=5)
     k = CAL.tag_intrinsics
     detector = pupil_apriltags.Detector(families="tag36h11", quad_decimate=1.0)
-    dets = detector.detect(
-        img, estimate_tag_pose=True, camera_params=(k.fx, k.fy, k.cx, k.cy), tag_size=TAG_SIZE
-    )
+    try:
+        dets = detector.detect(
+            img, estimate_tag_pose=True, camera_params=(k.fx, k.fy, k.cx, k.cy), tag_size=TAG_SIZE
+        )
+    finally:
+        release_pupil_detector(detector)  # pupil's own __del__ corrupts the heap
     assert [d.tag_id for d in dets] == [5]
     real = dets[0]
     # Same corner order (detector corners carry a ~0.5 px offset of its own).
@@ -187,9 +191,16 @@ def test_real_photo_of_an_upright_tag_has_identity_rotation() -> None:
     if not path.exists():
         pytest.skip(f"real AprilTag images not found at {path}")
     img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    (det,) = pupil_apriltags.Detector(families="tag36h11").detect(
-        img, estimate_tag_pose=True, camera_params=(329.873, 332.946, 528.0, 396.0), tag_size=0.065
-    )
+    detector = pupil_apriltags.Detector(families="tag36h11")
+    try:
+        (det,) = detector.detect(
+            img,
+            estimate_tag_pose=True,
+            camera_params=(329.873, 332.946, 528.0, 396.0),
+            tag_size=0.065,
+        )
+    finally:
+        release_pupil_detector(detector)
     assert rotation_deg(det.pose_R, np.eye(3)) < 20.0
     c = det.corners
     assert c[0, 0] < c[1, 0] and c[0, 1] > c[3, 1]  # bottom-left, then bottom-right
