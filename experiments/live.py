@@ -22,6 +22,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import os
 import queue
 import subprocess
 import sys
@@ -69,6 +70,7 @@ class SimWalker:
     depth_size: tuple[int, int] = (160, 120)
     depth_rate_hz: int = 10
     firmware: bool = False  # the compiled firmware in simavr instead of the emulator
+    cpus: tuple[int, ...] | None = None  # CPUs for the simulated walker (another machine)
 
 
 @dataclass(frozen=True)
@@ -122,6 +124,8 @@ class LiveResult:
     counts: dict[str, int]
     dropped: dict[str, int]
     latency_ms: dict[str, float]
+    # (frame time, frame-to-command latency, arrival-to-command latency) [s]
+    latency_samples: list[tuple[float, float, float]]
     board: dict[str, Any]
     commands: int
     files: dict[str, Path]
@@ -165,17 +169,24 @@ class ThreadedRecorder:
 
 class _Latency:
     """Frame-to-command latency: from a depth frame's time (its capture on the host
-    clock) to the moment the command it triggered was written to the board."""
+    clock) to the moment the command it triggered was written to the board; and the
+    part of it after the frame arrived from its device (what this process adds)."""
 
-    def __init__(self, clock: HostClock) -> None:
+    def __init__(self, clock: HostClock, arrival: Callable[[Message], float]) -> None:
         self.clock = clock
-        self.samples: list[float] = []
+        self.arrival = arrival
+        self.samples: list[float] = []  # [s]
+        self.after_arrival: list[float] = []  # [s]
+        self.frame_t: list[float] = []  # the frames' times
         self.commands = 0
 
     def __call__(self, cmd: BrakeCommand, frame: DepthFrame | LaserScan | None) -> None:
         self.commands += 1
         if frame is not None:
-            self.samples.append(self.clock.now() - frame.t)
+            now = self.clock.now()
+            self.samples.append(now - frame.t)
+            self.after_arrival.append(now - self.arrival(frame))
+            self.frame_t.append(frame.t)
 
     def percentiles(self, last: int | None = None) -> tuple[float, float]:
         s = self.samples[-last:] if last else self.samples
@@ -249,6 +260,8 @@ class LiveRun:
         self._world = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1
         )
+        if sim.cpus:
+            os.sched_setaffinity(self._world.pid, set(sim.cpus))
         self._world_events: queue.SimpleQueue[dict[str, Any] | None] = queue.SimpleQueue()
         threading.Thread(target=self._watch_world, name="world-events", daemon=True).start()
         ready = self._world_event("ready", timeout_s=120.0)
@@ -390,7 +403,7 @@ class LiveRun:
             self._safe = SafeController(ctl, cal, opts.loop.safety)
             pipeline = Pipeline(loc, cal, reference_map=False)
             config = self._config(loc, ctl_cfg, initial, proposed)
-            latency = _Latency(self.clock)
+            latency = _Latency(self.clock, lambda frame: self._sources.arrival(frame))
             files: dict[str, Path] = {}
             if opts.record:
                 files["log"] = Path(opts.record)
@@ -480,6 +493,9 @@ class LiveRun:
             counts={k: v for s in stats.values() for k, v in s.by_type.items()},
             dropped={name: s.dropped for name, s in stats.items()},
             latency_ms={"p50": p50, "p99": p99, "frames": len(latency.samples)},
+            latency_samples=list(
+                zip(latency.frame_t, latency.samples, latency.after_arrival, strict=True)
+            ),
             board=board.stats.to_dict() | {"metadata": board.metadata["board"]},
             commands=latency.commands,
             files=files,

@@ -101,6 +101,7 @@ class LiveSources:
         self._devices = [_Device(name, src) for name, src in devices]
         self._cond = threading.Condition()
         self._held: list[tuple[float, int, int, Message]] = []  # (t, device rank, n, msg)
+        self._arrivals: dict[int, float] = {}  # id(frame) -> arrival, for latency
         self._n = 0
         self._stopped = False
         self._ended_by: str | None = None
@@ -152,6 +153,12 @@ class LiveSources:
                 if now >= until or self.done:
                     return self._take(until)
                 self._cond.wait(timeout=until - now)
+
+    def arrival(self, frame: Message) -> float:
+        """When a depth frame or scan arrived from its device (host clock; NaN if it is
+        not known), once: for the latency from arrival to the command it triggered."""
+        with self._cond:
+            return self._arrivals.pop(id(frame), float("nan"))
 
     def remaining(self) -> list[Message]:
         """What arrived but was not polled (after close(): the devices' last messages,
@@ -209,10 +216,15 @@ class LiveSources:
             same = [m for m in d.queue if type(m) is type(msg)]
             if len(same) >= self.max_frames:
                 d.queue.remove(same[0])  # the oldest of its kind
+                self._arrivals.pop(id(same[0]), None)
                 s.dropped += 1
                 kind = type(msg).__name__
                 s.dropped_by_type[kind] = s.dropped_by_type.get(kind, 0) + 1
         d.queue.append(msg)
+        if isinstance(msg, DROPPABLE[:2]):
+            self._arrivals[id(msg)] = now
+            while len(self._arrivals) > 64:  # frames nobody asked about
+                self._arrivals.pop(next(iter(self._arrivals)))
         s.received += 1
         name = type(msg).__name__
         s.by_type[name] = s.by_type.get(name, 0) + 1
