@@ -33,7 +33,7 @@ system-deps:
 	fi
 
 $(LIVE_STAMP): $(STAMP) | system-deps
-	$(PY) -m pip install --quiet -e '.[dev,kinect]'
+	$(PY) -m pip install --quiet -e '.[dev,kinect,realsense]'
 	touch $(LIVE_STAMP)
 
 install-live: system-deps $(LIVE_STAMP)

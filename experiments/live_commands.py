@@ -178,12 +178,22 @@ def register(app: typer.Typer) -> None:
             bool, typer.Option("--foxglove", help="serve the streams to Foxglove (WebSocket)")
         ] = False,
         foxglove_port: Annotated[int, typer.Option(help="--foxglove: port (0: any)")] = 8765,
+        trigger: Annotated[
+            str,
+            typer.Option(
+                help="frame: a command right after each depth frame (at --rate while "
+                "frames stall); timer: commands at --rate only"
+            ),
+        ] = "frame",
+        rate: Annotated[float, typer.Option(help="the controller's loop rate [Hz]")] = 10.0,
     ) -> None:
         """Run a localizer and a braking controller live on the walker (or, with --sim, on
         the simulated walker in real time), recording everything; Ctrl-C stops and
         releases the brakes."""
+        from dataclasses import replace
+
         from control.base import CONTROLLERS
-        from experiments.live import LiveError, LiveOptions, LiveRun, SimWalker
+        from experiments.live import LIVE_LOOP, LiveError, LiveOptions, LiveRun, SimWalker
         from experiments.studies.settings import parse_sets
         from slam.base import LOCALIZERS
 
@@ -226,6 +236,7 @@ def register(app: typer.Typer) -> None:
             controller_overrides=sets.get(controller, {}),
             sim=sim_walker,
             foxglove_port=foxglove_port if foxglove else None,
+            loop=replace(LIVE_LOOP, trigger=trigger, rate_hz=rate),
         )
         with _status_display(err_console, Live, Text) as show:
             run = LiveRun(opts, on_status=lambda s: show(status_line(s)))

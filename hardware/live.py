@@ -65,6 +65,7 @@ class DeviceStats:
     last_by_type: dict[str, float] = field(default_factory=dict)
     stalled: set[str] = field(default_factory=set)  # streams ("*": the whole device)
     ended: bool = False
+    max_queued: int = 0  # most messages waiting in its queue at once
     recent: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
 
     def rate_hz(self, now: float, window_s: float = 1.0) -> float:
@@ -221,6 +222,7 @@ class LiveSources:
                 kind = type(msg).__name__
                 s.dropped_by_type[kind] = s.dropped_by_type.get(kind, 0) + 1
         d.queue.append(msg)
+        s.max_queued = max(s.max_queued, len(d.queue))
         if isinstance(msg, DROPPABLE[:2]):
             self._arrivals[id(msg)] = now
             while len(self._arrivals) > 64:  # frames nobody asked about

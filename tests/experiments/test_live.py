@@ -208,6 +208,10 @@ def test_a_localizer_slower_than_the_camera_drops_frames_never_ticks(tmp_path):
     opts = sim_options(tmp_path, localizer="slow-test", sim_s=5.0)
     res = Background(opts).join()
     assert res.dropped["sim"] > 10  # ~10 Hz frames, at most ~6.7 Hz processed
+    # the queue stays bounded: at most max_frames of each kind of frame, and what the
+    # 50 Hz truth and 100 Hz ticks bring while one 150 ms frame is processed
+    assert res.sources["sim"].max_queued <= 2 * opts.max_frames + 20
+    assert res.sources["board"].max_queued <= 40
     msgs = list(read_log(opts.record).messages())
     assert sum(isinstance(m, EncoderTicks) for m in msgs) == res.board["ticks"]
     assert res.board["seq_gaps"] == 0
