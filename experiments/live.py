@@ -51,8 +51,8 @@ from slam.base import LOCALIZERS, create
 
 # What a live run's loop does unless told otherwise: a command right after every depth
 # frame (the lowest frame-to-command latency), at 10 Hz while frames stall, no simulated
-# latency (the real one is there).
-LIVE_LOOP = LoopConfig(trigger="frame", latency_s=0.0)
+# latency (the real one is there), a smoother's map rebuilt in a thread.
+LIVE_LOOP = LoopConfig(trigger="frame", latency_s=0.0, rebuild_in_background=True)
 
 
 class LiveError(ValueError):

@@ -80,6 +80,7 @@ class Pipeline:
         # A smoother revises past poses: keep its frames (keyed by time) to rebuild the map.
         self._keep_frames = localizer.revises_past
         self._built_revision = localizer.revision
+        self._rebuild = None  # (job, revision) of a background rebuild
         self._last_t: dict[str, float] = {}  # per message type, for the order check
 
     def feed(self, msg: Message) -> None:
@@ -127,16 +128,35 @@ class Pipeline:
         else:
             mapper.integrate_scan(msg, pose, key=key)
 
-    def rebuild_map(self) -> bool:
+    def rebuild_map(self, background: bool = False) -> bool:
         """Re-map the kept frames at the localizer's current (smoothed) trajectory, when it
-        has revised the past since the map was built. Returns whether it rebuilt."""
+        has revised the past since the map was built. Returns whether it did (with
+        background=True: whether it started; `finish_rebuild` switches to the new map
+        when it is ready, so a control loop never waits for it)."""
+        if self._rebuild is not None:
+            self.finish_rebuild(wait=True)
         if not self._keep_frames or self.localizer.revision == self._built_revision:
             return False
         keys = np.array(sorted(self.mapper.keys()), dtype=float)
-        if len(keys):
-            poses = self.localizer.trajectory().interpolate(keys)
-            self.mapper.rebuild({float(k): p for k, p in zip(keys, poses, strict=True)})
+        poses = self.localizer.trajectory().interpolate(keys) if len(keys) else []
+        revised = {float(k): p for k, p in zip(keys, poses, strict=True)}
+        if background:
+            self._rebuild = (self.mapper.start_rebuild(revised), self.localizer.revision)
+            return True
+        if revised:
+            self.mapper.rebuild(revised)
         self._built_revision = self.localizer.revision
+        return True
+
+    def finish_rebuild(self, wait: bool = False) -> bool:
+        """Switch to a background rebuild's map if it is ready (or, wait, once it is).
+        Returns whether it switched."""
+        if self._rebuild is None or not (wait or self._rebuild[0].done):
+            return False
+        job, revision = self._rebuild
+        self._rebuild = None
+        self.mapper.finish_rebuild(job)
+        self._built_revision = revision
         return True
 
     def run(
@@ -186,13 +206,17 @@ class LoopConfig:
     trial time when the past has changed (0: only at the end), so the corrections reach
     the controller, not just the report. A rebuild re-maps every kept frame (~0.7 ms
     each): every 10 s costs about as much as the rest of the loop on a 90 s GTSAM trial;
-    every 2 s, 4× more."""
+    every 2 s, 4× more. rebuild_in_background: rebuild in a thread and switch to the new
+    map when it is ready (a live loop: a rebuild of a long run's frames takes seconds,
+    which would leave the brakes without commands meanwhile); the map the controller
+    reads is then the same, a little later."""
 
     rate_hz: float = 10.0
     latency_s: float = 0.03
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     map_rebuild_s: float = 10.0
     trigger: str = "timer"
+    rebuild_in_background: bool = False
 
     def __post_init__(self) -> None:
         if self.trigger not in ("timer", "frame"):
@@ -274,8 +298,10 @@ def run_closed_loop(
         # a live loop that fell behind its clock skips the steps it missed
         k = max(k + 1, math.floor(source.t / period) + 1)
         next_step = t + period
+        if loop.rebuild_in_background:
+            pipeline.finish_rebuild()
         if loop.map_rebuild_s > 0 and t - rebuilt_at >= loop.map_rebuild_s:
-            pipeline.rebuild_map()
+            pipeline.rebuild_map(background=loop.rebuild_in_background)
             rebuilt_at = t
         est = pipeline.localizer.estimate()
         v, omega = velocity.update(t, est.pose)

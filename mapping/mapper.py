@@ -18,8 +18,10 @@ the newest).
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Hashable, Iterator, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -87,6 +89,27 @@ def warm_up() -> None:
             mapper.integrate_depth(DepthFrame(0.0, d, k), np.zeros(3), key=0)
         mapper.integrate_scan(scan, np.zeros(3))
         mapper.rebuild()
+
+
+@dataclass(eq=False)
+class RebuildJob:
+    """A map rebuild running in a thread (`OccupancyMapper.start_rebuild`)."""
+
+    snapshot: list[tuple[Hashable, PlanarObservation, np.ndarray]]
+    grid: Any
+    thread: threading.Thread | None = None
+    error: BaseException | None = None
+
+    @property
+    def done(self) -> bool:
+        return self.thread is not None and not self.thread.is_alive()
+
+    def run(self) -> None:
+        try:
+            for _, obs, pose in self.snapshot:
+                self.grid.integrate(obs.in_world(pose), centre_xy=pose[:2])
+        except BaseException as e:  # re-raised by finish_rebuild in the caller's thread
+            self.error = e
 
 
 class OccupancyMapper:
@@ -181,6 +204,40 @@ class OccupancyMapper:
         self._grid.reset()
         for kf in self._keyframes.values():
             self._grid.integrate(kf.obs.in_world(kf.pose), centre_xy=kf.pose[:2])
+
+    def start_rebuild(self, poses: Mapping[Hashable, np.ndarray]) -> RebuildJob:
+        """`rebuild(poses)` in a thread of its own, for a loop that must not wait for it:
+        the new grid is built from a snapshot of the keyframes (their projected points
+        never change) while this mapper goes on integrating; `finish_rebuild(job)` then
+        adds the frames integrated meanwhile and switches to it. The result is the grid
+        `rebuild` would have given at the snapshot, plus those frames."""
+        unknown = [k for k in poses if k not in self._keyframes]
+        if unknown:
+            raise ValueError(f"no keyframe kept under keys {unknown[:5]}")
+        snapshot = [
+            (key, kf.obs, as_pose(poses[key], f"poses[{key!r}]") if key in poses else kf.pose)
+            for key, kf in self._keyframes.items()
+        ]
+        job = RebuildJob(snapshot, make_grid(self.config.grid))
+        job.thread = threading.Thread(target=job.run, name="map-rebuild", daemon=True)
+        job.thread.start()
+        return job
+
+    def finish_rebuild(self, job: RebuildJob) -> None:
+        """Wait for `job`, add what was integrated since it started, switch to its grid."""
+        assert job.thread is not None
+        job.thread.join()
+        if job.error is not None:
+            raise job.error
+        done = set()
+        for key, obs, pose in job.snapshot:
+            done.add(key)
+            if key in self._keyframes:
+                self._keyframes[key] = _Keyframe(obs, pose)
+        for key, kf in self._keyframes.items():
+            if key not in done:
+                job.grid.integrate(kf.obs.in_world(kf.pose), centre_xy=kf.pose[:2])
+        self._grid = job.grid
 
     def keys(self) -> Iterator[Hashable]:
         """Keys of the kept keyframes, oldest first."""

@@ -226,3 +226,24 @@ def test_closed_loop_rebuilds_a_smoothers_map_during_the_run(tmp_path):
         rebuilds[every] = sum(calls)
     assert rebuilds[0.0] == 0
     assert rebuilds[2.0] >= 4  # 12 s of trial: at 2, 4, 6, 8, 10 s whenever gtsam revised
+
+
+def test_a_background_rebuild_reaches_the_controller_without_stopping_the_loop():
+    sim = Simulator(load_world("thesis-course"), SimConfig(seed=0, duration_s=12.0))
+    loc = create("gtsam", sim.calibration, initial_pose=sim.world.start_pose)
+    pipeline = Pipeline(loc, sim.calibration, reference_map=False)
+    switched = []
+    original = pipeline.finish_rebuild
+    pipeline.finish_rebuild = lambda wait=False: switched.append(original(wait)) or switched[-1]
+    run_closed_loop(
+        sim,
+        sim,
+        pipeline,
+        create_controller("open-loop", sim.calibration),
+        LoopConfig(map_rebuild_s=2.0, rebuild_in_background=True),
+    )
+    assert sum(switched) >= 3  # the new maps were taken up during the run
+    commands = pipeline.recorded.commands
+    assert np.allclose(np.diff([c.t for c in commands]), 0.1)  # never a step missed
+    pipeline.rebuild_map()  # waits for one still running, then rebuilds
+    assert pipeline._rebuild is None

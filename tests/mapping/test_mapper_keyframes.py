@@ -181,3 +181,38 @@ def test_bad_poses_raise():
         mapper.integrate_scan(scan, np.zeros(2))
     with pytest.raises(ValueError, match=r"\(3,\)"):
         mapper.integrate_scan(scan, np.zeros(3), sensor_offset=(0.0, 0.0))
+
+
+def test_a_background_rebuild_gives_the_map_a_rebuild_would():
+    """start_rebuild/finish_rebuild: the grid of rebuild() at the snapshot, plus the
+    frames integrated while it ran, cell for cell."""
+    from hardware.messages import DepthFrame
+
+    rng = np.random.default_rng(5)
+    cal = WalkerCalibration()
+    k = cal.depth_intrinsics
+
+    def frame(i):
+        d = np.full((k.height, k.width), 1200 + 40 * (i % 7), np.uint16)
+        d[: k.height // 3] = 0
+        return DepthFrame(0.1 * i, d, k)
+
+    poses = {i: np.array([0.05 * i, 0.02 * i, 0.03 * i]) for i in range(30)}
+    revised = {i: p + rng.normal(0.0, 0.02, 3) for i, p in poses.items()}
+    sync, bg = OccupancyMapper(cal), OccupancyMapper(cal)
+    for m in (sync, bg):
+        for i in range(20):
+            m.integrate_depth(frame(i), poses[i], key=i)
+    sync.rebuild({i: revised[i] for i in range(20)})
+    job = bg.start_rebuild({i: revised[i] for i in range(20)})
+    for m in (sync, bg):  # frames that come while the rebuild runs
+        for i in range(20, 30):
+            m.integrate_depth(frame(i), poses[i], key=i)
+    bg.finish_rebuild(job)
+    assert job.done
+    assert bg.grid.origin == sync.grid.origin
+    np.testing.assert_array_equal(bg.grid.probability(), sync.grid.probability())
+    np.testing.assert_array_equal(bg.occupied_xy(), sync.occupied_xy())
+    assert len(sync.occupied_xy()) > 50
+    for i in range(20):
+        np.testing.assert_array_equal(bg.keyframe_pose(i), sync.keyframe_pose(i))
