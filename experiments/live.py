@@ -42,7 +42,7 @@ from control.safety import SafeController
 from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
 from experiments.studies.settings import build_config, source_settings
 from hardware.arduino import ArduinoBoard, BoardConfig, BoardStats
-from hardware.calibration import WalkerCalibration
+from hardware.calibration import WalkerCalibration, load_calibration
 from hardware.clock import HostClock
 from hardware.live import LiveSources
 from hardware.log import LogWriter
@@ -315,15 +315,7 @@ class LiveRun:
 
     def _calibration(self) -> WalkerCalibration:
         opts = self.options
-        cal = WalkerCalibration()
-        if opts.calibration:
-            path = Path(opts.calibration)
-            try:
-                cal = WalkerCalibration.from_dict(json.loads(path.read_text()))
-            except FileNotFoundError:
-                raise LiveError(f"{path}: no such calibration file") from None
-            except (ValueError, TypeError) as e:
-                raise LiveError(f"{path}: not a walker calibration: {e}") from None
+        cal = load_calibration(opts.calibration) if opts.calibration else WalkerCalibration()
         if opts.camera_yaml:
             from hardware.camera_calibration import load_camera_yaml, with_tag_camera
 

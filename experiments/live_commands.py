@@ -273,20 +273,12 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """The bench tool for wiring the walker: handshake, print the firmware, the tick
         rate and both encoder counts live, hold a brake command; exit releases the brakes."""
-        import json
 
         from experiments.live import bench_board
-        from hardware.calibration import WalkerCalibration
+        from hardware.calibration import WalkerCalibration, load_calibration
 
         brake_nm = _parse_pair(brake, "--brake") if brake else None
-        cal = WalkerCalibration()
-        if calibration is not None:
-            try:
-                cal = WalkerCalibration.from_dict(json.loads(calibration.read_text()))
-            except FileNotFoundError:
-                raise ValueError(f"{calibration}: no such calibration file") from None
-            except (TypeError, ValueError) as e:
-                raise ValueError(f"{calibration}: not a walker calibration: {e}") from None
+        cal = load_calibration(calibration) if calibration is not None else WalkerCalibration()
         stop = threading.Event()
 
         def reading(r) -> str:

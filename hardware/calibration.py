@@ -7,8 +7,11 @@ diameter and track errors are simulated).
 
 from __future__ import annotations
 
+import json
 import math
+import os
 from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -114,3 +117,15 @@ class WalkerCalibration:
         if "depth_range_m" in kw:
             kw["depth_range_m"] = tuple(kw["depth_range_m"])
         return cls(**kw)
+
+
+def load_calibration(path: str | os.PathLike[str]) -> WalkerCalibration:
+    """A walker calibration from a JSON file of WalkerCalibration fields (those not given
+    keep the thesis walker's defaults); ValueError on one line naming the file."""
+    p = Path(path)
+    try:
+        return WalkerCalibration.from_dict(json.loads(p.read_text()))
+    except FileNotFoundError:
+        raise ValueError(f"{p}: no such calibration file") from None
+    except (OSError, TypeError, ValueError) as e:
+        raise ValueError(f"{p}: not a walker calibration: {e}") from None

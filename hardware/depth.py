@@ -722,7 +722,42 @@ def _subscribe(
         raise
 
 
-class KinectDepthSource:
+class _KinectStream:
+    """One stream (depth or video) of a Kinect's capture process: its subscription, the
+    counts of frames lost on the way, and closing."""
+
+    _hub: Any
+    _sub: Any
+    _closed: bool
+
+    @property
+    def frames_dropped(self) -> int:
+        """Frames dropped because the consumer fell more than `queue_frames` behind."""
+        return self._sub.dropped
+
+    @property
+    def frames_skipped(self) -> int:
+        """fakenect: recorded frames that libfreenect's buffer ring replaced unread."""
+        return self._sub.feed.skipped
+
+    @property
+    def worker_pid(self) -> int | None:
+        """The capture process (shared by the depth and video streams of a device)."""
+        return self._hub.pid
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self._hub.detach(self._sub)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class KinectDepthSource(_KinectStream):
     """Depth frames of a Kinect v1 (or a fakenect recording) — see the module docstring.
 
     index: libfreenect device index; fakenect: a recording folder to replay instead of
@@ -792,21 +827,6 @@ class KinectDepthSource:
     def metadata(self) -> dict[str, Any]:
         return self._metadata
 
-    @property
-    def frames_dropped(self) -> int:
-        """Frames dropped because the consumer fell more than `queue_frames` behind."""
-        return self._sub.dropped
-
-    @property
-    def frames_skipped(self) -> int:
-        """fakenect: recorded frames that libfreenect's buffer ring replaced unread."""
-        return self._sub.feed.skipped
-
-    @property
-    def worker_pid(self) -> int | None:
-        """The capture process (shared with `kinect_rgb_frames` on the same device)."""
-        return self._hub.pid
-
     def to_frame(self, raw: np.ndarray, t: float) -> DepthFrame:
         """The DepthFrame of one raw 11-bit 480×640 image taken at t."""
         mm = np.take(self.table, raw, mode="clip")
@@ -825,19 +845,8 @@ class KinectDepthSource:
                 continue
             yield self.to_frame(raw.image, t)
 
-    def close(self) -> None:
-        if not self._closed:
-            self._closed = True
-            self._hub.detach(self._sub)
 
-    def __enter__(self) -> KinectDepthSource:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-class KinectVideoStream:
+class KinectVideoStream(_KinectStream):
     """Iterator of (t, BGR image) from a Kinect's RGB camera (see `kinect_rgb_frames`)."""
 
     def __init__(
@@ -862,18 +871,6 @@ class KinectVideoStream:
             self.close()
             raise
 
-    @property
-    def frames_dropped(self) -> int:
-        return self._sub.dropped
-
-    @property
-    def frames_skipped(self) -> int:
-        return self._sub.feed.skipped
-
-    @property
-    def worker_pid(self) -> int | None:
-        return self._hub.pid
-
     def __iter__(self) -> KinectVideoStream:
         return self
 
@@ -892,17 +889,6 @@ class KinectVideoStream:
                 self.frames_unstamped += 1
                 continue
             return t, np.ascontiguousarray(raw.image[:, :, ::-1])
-
-    def close(self) -> None:
-        if not self._closed:
-            self._closed = True
-            self._hub.detach(self._sub)
-
-    def __enter__(self) -> KinectVideoStream:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def kinect_rgb_frames(

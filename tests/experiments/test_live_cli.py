@@ -158,3 +158,19 @@ def test_sigkill_of_a_live_run_leaves_a_readable_log_and_released_brakes(tmp_pat
     # all but the last fraction of a second survived (the recorder flushes every 0.5 s)
     start = trial.metadata["config"]["host_clock_start"]  # the run's clock on CLOCK_MONOTONIC
     assert msgs[-1].t + start > t_kill - 1.0
+
+
+def test_board_takes_a_calibration_file_and_checks_the_firmware_against_it(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    other = tmp_path / "cal.json"
+    other.write_text(json.dumps({"counts_per_rev": 1024, "wheel_diameter_m": 0.204}))
+    with BoardEmulator(tmp_path / "tty") as emu:
+        for cal, what in [
+            (bad, "bad.json: not a walker calibration"),
+            (tmp_path / "none.json", "none.json: no such calibration file"),
+            (other, "firmware counts 256 per wheel revolution, the calibration 1024"),
+        ]:
+            r = cli("board", str(emu.port), "--duration", "0.5", "--calibration", str(cal))
+            lines = r.stderr.strip().splitlines()
+            assert r.returncode == 2 and len(lines) == 1 and what in lines[0], r.stderr
