@@ -219,6 +219,15 @@ class LiveRun:
         #: what the simulated walker reported (--sim): brake outputs, injected faults
         self.world_log: list[dict[str, Any]] = []
         self.view_url: str | None = None  # the live view's address (foxglove_port)
+        # what a run is made of (built by run())
+        self.cal = WalkerCalibration()
+        self.devices: list[tuple[str, Any]] = []
+        self.metadata: dict[str, Any] = {}
+        self.board: ArduinoBoard | None = None
+        self.pipeline: Pipeline | None = None
+        self.recorder: ThreadedRecorder | None = None
+        self.view = self.watcher = None
+        self.files: dict[str, Path] = {}
 
     def stop(self) -> None:
         self._stop_requested = True
@@ -348,150 +357,174 @@ class LiveRun:
 
     # -- running -----------------------------------------------------------------------
     def run(self) -> LiveResult:
+        ctl_cfg = self._check_options()
+        finished = False
+        try:
+            self._open_devices()
+            self._build(ctl_cfg)
+            record, on_command = self._outputs()
+            t_start = self.clock.now()
+            self._loop(record, on_command)
+            duration, ended = self.clock.now() - t_start, self._ended_by()
+            finished = True
+        finally:
+            self._shut_down(finished)
+        return self._result(duration, ended)
+
+    # the steps of a run ----------------------------------------------------------------
+    def _check_options(self) -> Any:
+        """Unknown names and bad --set values fail before any device opens."""
         opts = self.options
-        LOCALIZERS.spec(opts.localizer)  # unknown names fail before any device opens
+        LOCALIZERS.spec(opts.localizer)
         CONTROLLERS.spec(opts.controller)
         build_config(LOCALIZERS, opts.localizer, opts.localizer_overrides.items())
-        ctl_cfg = build_config(CONTROLLERS, opts.controller, opts.controller_overrides.items())
         if opts.sim is None and not opts.serial:
             raise LiveError("live needs --serial PORT (or --sim)")
-        board: ArduinoBoard | None = None
-        pipeline: Pipeline | None = None
-        view = watcher = None
-        finished = False
-        recorder: ThreadedRecorder | None = None
-        devices: list[tuple[str, Any]] = []
-        metadata: dict[str, Any] = {}
-        try:
-            serial, sock = opts.serial, None
-            if opts.sim is not None:
-                serial, sock = self._start_world(opts.sim)
-            elif opts.depth.startswith("sim:"):
-                sock = opts.depth.removeprefix("sim:")
-            if sock is not None:
-                from hardware.sim.stream import SimSensors
+        return build_config(CONTROLLERS, opts.controller, opts.controller_overrides.items())
 
-                sensors = SimSensors(sock, self.clock)
-                cal = sensors.calibration
-                metadata.update(sensors.metadata)
-                devices.append(("sim", sensors))
-            else:
-                cal = self._calibration()
-            board = ArduinoBoard(serial, cal, self.clock, opts.board)
-            board.open()
-            devices.insert(0, ("board", board))
-            devices.extend(self._devices(cal))
-            for _, dev in devices:
-                metadata.update(getattr(dev, "metadata", {}) or {})
-            initial = (metadata.get("world") or {}).get("start_pose") or (0.0, 0.0, 0.0)
-            proposed = source_settings(LOCALIZERS, opts.localizer, metadata)
-            loc_cfg = build_config(
-                LOCALIZERS,
-                opts.localizer,
-                [*proposed.items(), *opts.localizer_overrides.items()],
+    def _open_devices(self) -> None:
+        """The simulated walker (--sim), the board (handshake), the cameras."""
+        opts = self.options
+        serial, sock = opts.serial, None
+        if opts.sim is not None:
+            serial, sock = self._start_world(opts.sim)
+        elif opts.depth.startswith("sim:"):
+            sock = opts.depth.removeprefix("sim:")
+        if sock is not None:
+            from hardware.sim.stream import SimSensors
+
+            sensors = SimSensors(sock, self.clock)
+            self.cal = sensors.calibration
+            self.devices.append(("sim", sensors))
+        else:
+            self.cal = self._calibration()
+        self.board = ArduinoBoard(serial, self.cal, self.clock, opts.board)
+        self.board.open()
+        self.devices.insert(0, ("board", self.board))
+        self.devices.extend(self._devices(self.cal))
+        for _, dev in self.devices:
+            self.metadata.update(getattr(dev, "metadata", {}) or {})
+
+    def _build(self, ctl_cfg: Any) -> None:
+        """Localizer (with what the devices propose, then --set), controller behind the
+        safety layer, pipeline."""
+        opts, cal = self.options, self.cal
+        self.initial = (self.metadata.get("world") or {}).get("start_pose") or (0.0, 0.0, 0.0)
+        self.proposed = source_settings(LOCALIZERS, opts.localizer, self.metadata)
+        loc_cfg = build_config(
+            LOCALIZERS, opts.localizer, [*self.proposed.items(), *opts.localizer_overrides.items()]
+        )
+        loc = create(opts.localizer, cal, loc_cfg, initial_pose=tuple(self.initial))
+        ctl = CONTROLLERS.create(opts.controller, cal, config=ctl_cfg)
+        self._safe = SafeController(ctl, cal, opts.loop.safety)
+        self.pipeline = Pipeline(loc, cal, reference_map=False)
+        self.config = self._config(loc, ctl_cfg, self.initial, self.proposed)
+        self.latency = _Latency(self.clock, lambda frame: self._sources.arrival(frame))
+
+    def _outputs(self):
+        """The recorder and the live view: the loop's `record` and `on_command`."""
+        opts = self.options
+        if opts.record:
+            self.files["log"] = Path(opts.record)
+            self.files["log"].parent.mkdir(parents=True, exist_ok=True)
+            meta = {"config": self.config, **self.metadata}
+            self.recorder = ThreadedRecorder(LogWriter(self.files["log"], self.cal, metadata=meta))
+        record = self.recorder
+        on_command: Callable[[BrakeCommand, DepthFrame | LaserScan | None], None] = self.latency
+        if opts.foxglove_port is not None:
+            from experiments.live_view import FoxgloveView
+
+            self.view = FoxgloveView(
+                self.cal, host=opts.foxglove_host, port=opts.foxglove_port, background=True
             )
-            loc = create(opts.localizer, cal, loc_cfg, initial_pose=tuple(initial))
-            ctl = CONTROLLERS.create(opts.controller, cal, config=ctl_cfg)
-            self._safe = SafeController(ctl, cal, opts.loop.safety)
-            pipeline = Pipeline(loc, cal, reference_map=False)
-            config = self._config(loc, ctl_cfg, initial, proposed)
-            latency = _Latency(self.clock, lambda frame: self._sources.arrival(frame))
-            files: dict[str, Path] = {}
-            if opts.record:
-                files["log"] = Path(opts.record)
-                files["log"].parent.mkdir(parents=True, exist_ok=True)
-                recorder = ThreadedRecorder(
-                    LogWriter(files["log"], cal, metadata={"config": config, **metadata})
-                )
-            record = recorder
-            on_command: Callable[[BrakeCommand, DepthFrame | LaserScan | None], None] = latency
-            if opts.foxglove_port is not None:
-                from experiments.live_view import FoxgloveView
+            self.view_url = self.view.url
+            self.watcher = self.view.observer(self.pipeline)
+            record = _both(self.recorder, self.watcher.record)
+            on_command = _both(self.latency, self.watcher.on_command)
+        return record, on_command
 
-                view = FoxgloveView(
-                    cal, host=opts.foxglove_host, port=opts.foxglove_port, background=True
-                )
-                self.view_url = view.url
-                watcher = view.observer(pipeline)
-                record = _both(recorder, watcher.record)
-                on_command = _both(latency, watcher.on_command)
-            self._sources = LiveSources(devices, self.clock, max_frames=opts.max_frames)
-            if self._stop_requested:
-                self._sources.stop()
-            timer = None
-            if opts.duration_s is not None:
-                timer = threading.Timer(opts.duration_s, self._sources.stop)
-                timer.daemon = True
-                timer.start()
-            last_status = [-math.inf]
+    def _loop(self, record, on_command) -> None:
+        """The closed loop over the live sources until they are done."""
+        opts = self.options
+        self._sources = LiveSources(self.devices, self.clock, max_frames=opts.max_frames)
+        if self._stop_requested:
+            self._sources.stop()
+        timer = None
+        if opts.duration_s is not None:
+            timer = threading.Timer(opts.duration_s, self._sources.stop)
+            timer.daemon = True
+            timer.start()
+        last_status = [-math.inf]
 
-            def progress(t: float) -> None:
-                now = self.clock.now()
-                if self.on_status is not None and now - last_status[0] >= self.status_period:
-                    last_status[0] = now
-                    self.on_status(self._status(pipeline, board, latency))
+        def progress(t: float) -> None:
+            now = self.clock.now()
+            if self.on_status is not None and now - last_status[0] >= self.status_period:
+                last_status[0] = now
+                self.on_status(self._status(self.pipeline, self.board, self.latency))
 
-            t_start = self.clock.now()
+        try:
             run_closed_loop(
                 self._sources,
-                board,
-                pipeline,
+                self.board,
+                self.pipeline,
                 self._safe,
                 opts.loop,
                 record=record,
                 progress=progress,
                 on_command=on_command,
             )
+        finally:
             if timer is not None:
                 timer.cancel()
-            duration = self.clock.now() - t_start
-            ended = self._ended_by()
-            finished = True
-        finally:
-            # the brakes first, then the devices, then the log
-            if board is not None:
-                if pipeline is not None and board.commanded_pwm != (0, 0):
-                    # the release is a command too: the pipeline and the log see it
-                    off = cal.brake.torque_off_nm
-                    release = BrakeCommand(self.clock.now(), off, off, "release")
-                    pipeline.feed(release)
+
+    def _shut_down(self, finished: bool) -> None:
+        """The brakes first (zero, recorded), then the devices (what they still had is
+        fed and recorded: nothing is lost at the end), then the log."""
+        board, pipeline, recorder = self.board, self.pipeline, self.recorder
+        if board is not None:
+            if pipeline is not None and board.commanded_pwm != (0, 0):
+                off = self.cal.brake.torque_off_nm
+                release = BrakeCommand(self.clock.now(), off, off, "release")
+                pipeline.feed(release)
+                if recorder is not None:
+                    recorder(release)
+            board.close()
+        if self._sources is not None:
+            self._sources.close()
+            if pipeline is not None:
+                for msg in self._sources.remaining():
+                    pipeline.feed(msg)
                     if recorder is not None:
-                        recorder(release)
-                board.close()
-            if self._sources is not None:
-                self._sources.close()
-                if pipeline is not None:
-                    for msg in self._sources.remaining():  # nothing is lost at the end
-                        pipeline.feed(msg)
-                        if recorder is not None:
-                            recorder(msg)
-            else:
-                for _, dev in devices:
-                    dev.close()
-            self._stop_world()
-            if recorder is not None:
-                recorder.close()
-            if view is not None and not finished:
-                view.close()
-        pipeline.rebuild_map()
-        if watcher is not None:
-            watcher.finish()
-            view.close()
+                        recorder(msg)
+        else:
+            for _, dev in self.devices:
+                dev.close()
+        self._stop_world()
+        if recorder is not None:
+            recorder.close()
+        if self.view is not None and not finished:
+            self.view.close()
+
+    def _result(self, duration: float, ended: str) -> LiveResult:
+        """The smoother's final map, the live view's last state, the numbers."""
+        self.pipeline.rebuild_map()
+        if self.watcher is not None:
+            self.watcher.finish()
+            self.view.close()
         stats = self._sources.stats
-        p50, p99 = latency.percentiles()
+        lat = self.latency
+        p50, p99 = lat.percentiles()
         return LiveResult(
             duration_s=duration,
             ended_by=ended,
             counts={k: v for s in stats.values() for k, v in s.by_type.items()},
             dropped={name: s.dropped for name, s in stats.items()},
-            latency_ms={"p50": p50, "p99": p99, "frames": len(latency.samples)},
-            latency_samples=list(
-                zip(latency.frame_t, latency.samples, latency.after_arrival, strict=True)
-            ),
-            board=board.stats.to_dict() | {"metadata": board.metadata["board"]},
-            commands=latency.commands,
-            files=files,
-            pipeline=pipeline,
+            latency_ms={"p50": p50, "p99": p99, "frames": len(lat.samples)},
+            latency_samples=list(zip(lat.frame_t, lat.samples, lat.after_arrival, strict=True)),
+            board=self.board.stats.to_dict() | {"metadata": self.board.metadata["board"]},
+            commands=lat.commands,
+            files=self.files,
+            pipeline=self.pipeline,
             sources=stats,
         )
 
