@@ -213,8 +213,8 @@ def test_closed_loop_rebuilds_a_smoothers_map_during_the_run(tmp_path):
         pipeline = Pipeline(loc, sim.calibration, reference_map=False)
         calls = []
         original = pipeline.rebuild_map
-        pipeline.rebuild_map = lambda calls=calls, original=original: (
-            calls.append(original()) or calls[-1]
+        pipeline.rebuild_map = lambda background=False, calls=calls, original=original: (
+            calls.append(original(background)) or calls[-1]
         )
         run_closed_loop(
             sim,
