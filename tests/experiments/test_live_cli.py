@@ -174,3 +174,54 @@ def test_board_takes_a_calibration_file_and_checks_the_firmware_against_it(tmp_p
             r = cli("board", str(emu.port), "--duration", "0.5", "--calibration", str(cal))
             lines = r.stderr.strip().splitlines()
             assert r.returncode == 2 and len(lines) == 1 and what in lines[0], r.stderr
+
+
+def test_replay_foxglove_serves_the_replay_to_a_websocket_client(tmp_path):
+    import socket
+
+    from foxglove_client import Client
+
+    from experiments.run import simulate_trial
+
+    log = tmp_path / "short.mcap"
+    simulate_trial("thesis-course", log, surface="dusty", seed=1, duration_s=6.0)
+    with socket.socket() as s:  # a free port
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen(
+        [*WALKERSLAM, "replay", str(log), "--out", str(tmp_path / "out"), "--localizer",
+         "ekf-slam", "--foxglove", "--foxglove-port", str(port), "--linger", "20"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 60
+        client, reader = None, None
+        while client is None and time.monotonic() < deadline:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                client = Client(f"ws://127.0.0.1:{port}")
+            except OSError:
+                time.sleep(0.1)
+        assert client is not None, "the replay's live view did not come up"
+        # paced to real time: a 6 s trial streams for 6 s, so a client that joins early
+        # sees it go by
+        for topic in ("/encoders", "/depth/image", "/slam/pose", "/map", "/groundtruth/pose"):
+            client.wait_count(topic, 2)
+        _, grid = client.messages("/map")[-1]
+        assert grid.column_count > 0 and grid.cell_size.x == pytest.approx(0.05)
+        lines = []
+        reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
+        reader.start()
+        deadline = time.monotonic() + 60
+        while not any("serving the final state" in ln for ln in lines):
+            assert time.monotonic() < deadline, "the replay did not finish"
+            time.sleep(0.1)
+        client.close()
+    finally:
+        proc.send_signal(signal.SIGINT)  # Ctrl-C ends the lingering view
+        proc.wait(timeout=60)
+        if reader is not None:
+            reader.join(timeout=10)
+    out = "".join(lines)
+    assert "live view: ws://127.0.0.1:" in out and "ate_rmse_m" in out
+    assert proc.returncode == 0
