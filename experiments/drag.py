@@ -78,6 +78,7 @@ from control.base import CONTROLLERS, ControlInput
 from experiments.metrics import command_differences, distance_to_outlines
 from experiments.pipeline import GROUNDTRUTH_TOLERANCE_S, Pipeline, VelocityEstimator
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import between, compose
 from hardware.messages import (
     BrakeCommand,
     DepthFrame,
@@ -89,7 +90,6 @@ from hardware.messages import (
 )
 from mapping.depth_points import project_depth_frame
 from mapping.scan_points import scan_to_observation
-from slam.geometry import between, compose
 from slam.trajectory import Trajectory
 
 MAX_POINTS_PER_FRAME = 256

@@ -12,8 +12,8 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 from matplotlib.path import Path as MplPath
 
+from hardware.geometry import between
 from hardware.messages import BrakeCommand, Collision
-from slam.geometry import between
 from slam.trajectory import Trajectory
 
 COLLISION_KINDS = ("front", "side", "rear-wheel")

@@ -11,12 +11,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from hardware.geometry import between
 from hardware.messages import BrakeCommand, GroundTruthPose
 from hardware.sim.simulator import SimConfig, Simulator
 from hardware.sim.user import UserParams
 from hardware.sim.world import World
 from slam.base import create
-from slam.geometry import between
 from slam.trajectory import Trajectory
 
 BRAKE_SETTINGS = ("none", "left", "right", "both")

@@ -43,6 +43,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from hardware.geometry import wrap_angle
 from mapping.kernels import (
     accumulate_hits,
     floor_bounds,
@@ -52,7 +53,6 @@ from mapping.kernels import (
 )
 from mapping.lattice import as_points, cell_centres, cells_of
 from mapping.observation import ViewWedge, WorldObservation
-from slam.geometry import wrap_angle
 
 
 class MapModel(StrEnum):

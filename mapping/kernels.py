@@ -117,7 +117,7 @@ def place_points(
 ) -> None:
     """World (x', y') of the walker-frame float32 `points` (N×2) at the pose (x, y) with
     heading cos c, sin s, into `out` (N×2 float64): x' = (x + c·px) − s·py and
-    y' = (y + s·px) + c·py, operation for operation as `slam.geometry.transform_points`."""
+    y' = (y + s·px) + c·py, operation for operation as `hardware.geometry.transform_points`."""
     for k in range(points.shape[0]):
         px = np.float64(points[k, 0])
         py = np.float64(points[k, 1])

@@ -103,7 +103,7 @@ class PlanarObservation:
         n = len(self.obstacles)  # both point sets in one pass: half the numpy calls
         points = _place(np.concatenate([self.obstacles, self.ray_ends]), pose, c, s)
         return WorldObservation(
-            # slam.geometry.transform_points, operation for operation (same float64 values)
+            # hardware.geometry.transform_points, operation for operation (same float64 values)
             sensor_xy=np.array([pose[0] + c * x - s * y, pose[1] + s * x + c * y]),
             heading=float(pose[2] + self.sensor_yaw),
             obstacles=points[:n],
@@ -113,7 +113,7 @@ class PlanarObservation:
 
 
 def _place(points: np.ndarray, pose: np.ndarray, c: np.float64, s: np.float64) -> np.ndarray:
-    """`slam.geometry.transform_points(pose, points)` with cos/sin given, in the same float64
+    """`hardware.geometry.transform_points(pose, points)` with cos/sin given, in the same float64
     operations (so the same values), by one compiled loop (`mapping.kernels.place_points`)."""
     out = np.empty((len(points), 2))
     place_points(points, float(pose[0]), float(pose[1]), float(c), float(s), out)

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hardware.geometry import transform_points
 from hardware.messages import LaserScan
 from mapping.observation import PlanarObservation, as_pose
-from slam.geometry import transform_points
 
 
 @dataclass(frozen=True)

@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from slam.base import Localizer, PoseEstimate, register
-from slam.geometry import wrap_angle
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,

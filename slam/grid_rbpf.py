@@ -44,13 +44,13 @@ from dataclasses import replace
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import wrap_angle
 from hardware.messages import DepthFrame, LaserScan
 from mapping.depth_points import project_depth_frame
 from mapping.grid import GridExtent, HitCentroidGrid, make_grid
 from mapping.mapper import MapperConfig
 from mapping.scan_points import scan_to_observation
 from slam.base import PoseEstimate
-from slam.geometry import wrap_angle
 from slam.grid_kernels import frame_log_likelihood, hill_climb, poses_log_likelihood
 from slam.particle_filter import ParticleFilter, ParticleFilterConfig
 from slam.particle_paths import ParticlePaths

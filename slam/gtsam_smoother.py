@@ -77,9 +77,9 @@ import numpy as np
 from gtsam.symbol_shorthand import L, T, X
 
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import compose, wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from slam.base import Localizer, PoseEstimate, register
-from slam.geometry import compose, wrap_angle
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,

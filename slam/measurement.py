@@ -18,8 +18,8 @@ from functools import lru_cache
 import numpy as np
 
 from hardware.calibration import Mount, WalkerCalibration
+from hardware.geometry import wrap_angle
 from hardware.messages import Message, RangeBearing, TagDetections
-from slam.geometry import wrap_angle
 
 # Default landmark noise of the localizers: range σ = RANGE_SIGMA_M + RANGE_SIGMA_FRAC·r,
 # bearing σ = BEARING_SIGMA_RAD. They describe an AprilTag camera (the walker's tag

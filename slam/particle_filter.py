@@ -73,11 +73,11 @@ from scipy.ndimage import binary_erosion, distance_transform_edt
 from scipy.special import logsumexp
 
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from mapping.depth_points import DepthConfig, project_depth_frame
 from mapping.scan_points import ScanConfig, scan_to_observation
 from slam.base import Localizer, PoseEstimate, register
-from slam.geometry import wrap_angle
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam.geometry import compose, wrap_angle
+from hardware.geometry import compose, wrap_angle
 from slam.motion import apply_increment, sinc_and_derivative
 
 

@@ -61,10 +61,10 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import wrap_angle
 from hardware.messages import DepthFrame, LaserScan
 from mapping.depth_points import DepthConfig, project_depth_frame
 from mapping.scan_points import ScanConfig, scan_to_observation
-from slam.geometry import wrap_angle
 
 FREE_BIN_RAD = math.radians(0.5)  # angular bins of a scan's free-space polygon
 

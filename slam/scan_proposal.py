@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import logsumexp
 
-from slam.geometry import wrap_angle
+from hardware.geometry import wrap_angle
 
 
 def lattice(centre: np.ndarray, half_steps: tuple[int, int, int], steps: np.ndarray) -> np.ndarray:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slam.geometry import wrap_angle
+from hardware.geometry import wrap_angle
 
 
 @dataclass(frozen=True, eq=False)

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import wrap1
 from hardware.messages import GroundTruthPose, Message, merge
 from hardware.registry import Registry, UnknownNameError
 
@@ -183,18 +184,12 @@ def interpolate_pose(t: np.ndarray, poses: np.ndarray, at: float) -> tuple[float
     return (x, y, math.remainder(float(np.interp(at, t, th)), 2.0 * math.pi))
 
 
-def wrap(a: float) -> float:
-    """Angle wrapped to (−π, π]."""
-    w = math.remainder(a, 2.0 * math.pi)
-    return math.pi if w == -math.pi else w
-
-
 def groundtruth_stream(t: np.ndarray, poses: np.ndarray) -> StreamFactory:
     """GroundTruthPose messages from a time-sorted table (θ wrapped to (−π, π])."""
 
     def gen() -> Iterator[GroundTruthPose]:
         for ti, (x, y, th) in zip(t.tolist(), poses.tolist(), strict=True):
-            yield GroundTruthPose(ti, x, y, wrap(th))
+            yield GroundTruthPose(ti, x, y, wrap1(th))
 
     return gen
 

@@ -143,9 +143,9 @@ from hardware.datasets.base import (
     groundtruth_stream,
     options_dict,
     register,
-    wrap,
 )
 from hardware.datasets.textio import iter_lines, parse_floats, read_table
+from hardware.geometry import arc_end1, between1, compose1, wrap1
 from hardware.messages import GroundTruthPose, LaserScan, VelocityOdometry
 
 ODOMETRY_MODES = ("smooth", "exact")
@@ -396,32 +396,12 @@ def _repair_times(log: _Log, mode: str, period: float) -> dict[str, Any]:
 # odometry
 
 
-def relative(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple:
-    """a⁻¹·b: pose b in the frame of pose a (dθ wrapped to (−π, π])."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return (c * dx + s * dy, -s * dx + c * dy, wrap(b[2] - a[2]))
-
-
-def compose(a: tuple, b: tuple) -> tuple[float, float, float]:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2])
-
-
 def _arc_length(chord: float, dtheta: float) -> float:
     """Length of the arc with signed chord `chord` turning by dtheta."""
     half = 0.5 * dtheta
     if abs(half) < 1e-9:
         return chord * (1.0 + half * half / 6.0)
     return chord * half / math.sin(half)
-
-
-def arc_end(ds: float, dtheta: float) -> tuple[float, float, float]:
-    """Pose reached by an exact arc of length ds turning by dtheta from the origin
-    (the same formula as slam.motion.arc_increment)."""
-    half = 0.5 * dtheta
-    chord = ds * (math.sin(half) / half if abs(half) > 1e-9 else 1.0 - half * half / 6.0)
-    return (chord * math.cos(half), chord * math.sin(half), dtheta)
 
 
 def exact_pieces(dx: float, dy: float, dth: float) -> list[tuple[float, float]]:
@@ -434,9 +414,9 @@ def exact_pieces(dx: float, dy: float, dth: float) -> list[tuple[float, float]]:
     half = 0.5 * dth
     # chord direction b: phi or its reverse, whichever is closer to dth/2
     b, sign = phi, 1.0
-    if abs(wrap(phi - half)) > 0.5 * math.pi:
-        b, sign = wrap(phi - math.pi), -1.0
-    b = half + wrap(b - half)  # b - dth/2 in (-pi/2, pi/2]
+    if abs(wrap1(phi - half)) > 0.5 * math.pi:
+        b, sign = wrap1(phi - math.pi), -1.0
+    b = half + wrap1(b - half)  # b - dth/2 in (-pi/2, pi/2]
     a1 = 2.0 * b - 0.5 * dth
     a2 = dth - a1
     chord = sign * d / (2.0 * math.cos(0.25 * dth))
@@ -540,7 +520,7 @@ def _smooth_run(rel: list[tuple[float, float, float]]) -> tuple[list, float, flo
     s0 = np.array([arc_piece(*r)[0] for r in rel])
     target = (0.0, 0.0, 0.0)
     for r in rel:
-        target = compose(target, r)
+        target = compose1(target, r)
     goal = np.array([target[0], target[1], float(th0.sum())])
     # like an odometry noise model: intervals that moved more may change more
     sig_s = SMOOTH_SIGMA_FLOOR + SMOOTH_SIGMA_REL * np.abs(s0)
@@ -583,16 +563,16 @@ def _close_on_longest(rel: list[tuple[float, float, float]]) -> list[list[tuple[
     before = after = (0.0, 0.0, 0.0)
     target = (0.0, 0.0, 0.0)
     for i, m in enumerate(rel):
-        target = compose(target, m)
+        target = compose1(target, m)
         if i < k:
-            before = compose(before, arc_end(*natural[i]))
+            before = compose1(before, arc_end1(*natural[i]))
         elif i > k:
-            after = compose(after, arc_end(*natural[i]))
+            after = compose1(after, arc_end1(*natural[i]))
     # before * M * after = target  ->  M = before^-1 * target * after^-1
-    inv_after = relative(after, (0.0, 0.0, 0.0))
-    mx, my, mth = compose(relative(before, target), inv_after)
+    inv_after = between1(after, (0.0, 0.0, 0.0))
+    mx, my, mth = compose1(between1(before, target), inv_after)
     pieces: list[list[tuple[float, float]]] = [[p] for p in natural]
-    pieces[k] = exact_pieces(mx, my, wrap(mth))
+    pieces[k] = exact_pieces(mx, my, wrap1(mth))
     return pieces
 
 
@@ -615,7 +595,7 @@ def _odometry(log: _Log, mode: str) -> tuple[np.ndarray, dict[str, Any]]:
 
     runs = _runs(pts)
     for r, run in enumerate(runs):
-        rel = [relative(pts[i].pose_out, pts[j].pose_in) for i, j in itertools.pairwise(run)]
+        rel = [between1(pts[i].pose_out, pts[j].pose_in) for i, j in itertools.pairwise(run)]
         intervals += len(rel)
         arcs = None
         closing: list[list[tuple[float, float]]] = []
@@ -731,7 +711,7 @@ def _initial_pose(log: _Log, odo: np.ndarray) -> tuple[float, float, float]:
     if first.reset_frame is None:
         return (0.0, 0.0, 0.0)
     if len(odo) == 0 or odo[0, 0] >= first.t:
-        return (gt0[0], gt0[1], wrap(gt0[2]))
+        return (gt0[0], gt0[1], wrap1(gt0[2]))
     # integrate the emitted messages up to the first scan, from the origin
     p = (0.0, 0.0, 0.0)
     for (t0, v, w), t1 in zip(odo.tolist(), odo[1:, 0].tolist(), strict=False):
@@ -739,10 +719,10 @@ def _initial_pose(log: _Log, odo: np.ndarray) -> tuple[float, float, float]:
             break
         dt = min(t1, first.t) - t0
         if dt > 0:
-            p = compose(p, arc_end(v * dt, w * dt))
-    inv = relative(p, (0.0, 0.0, 0.0))  # p⁻¹
-    x, y, th = compose(gt0, inv)
-    return (x, y, wrap(th))
+            p = compose1(p, arc_end1(v * dt, w * dt))
+    inv = between1(p, (0.0, 0.0, 0.0))  # p⁻¹
+    x, y, th = compose1(gt0, inv)
+    return (x, y, wrap1(th))
 
 
 # A SICK LMS reads reliably to about 20 m (Intel's readings reach 25 m, sparse and noisy

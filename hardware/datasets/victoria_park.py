@@ -61,9 +61,9 @@ from hardware.datasets.base import (
     options_dict,
     register,
     sorted_stream_order,
-    wrap,
 )
 from hardware.datasets.textio import find_file, read_table
+from hardware.geometry import wrap1
 from hardware.messages import RangeBearing, VelocityOdometry
 
 WHEELBASE_M = 2.83  # L
@@ -165,7 +165,7 @@ def open_victoria_park(options: VictoriaParkOptions, path: Path) -> Dataset:
     initial = (
         float(gps_rows[0, 1]),
         float(gps_rows[0, 2]),
-        wrap(math.radians(options.initial_heading_deg)),
+        wrap1(math.radians(options.initial_heading_deg)),
     )
     counts = {"VelocityOdometry": len(dr), "RangeBearing": len(trees)}
     all_t = np.r_[t_dr[[0, -1]], t_tree[[0, -1]]]

@@ -9,8 +9,8 @@ from experiments.metrics import (
     map_scores,
     rpe,
 )
+from hardware.geometry import compose
 from hardware.messages import BrakeCommand
-from slam.geometry import compose
 from slam.trajectory import Trajectory
 
 
@@ -87,7 +87,7 @@ def test_landmark_rmse():
 
 def test_relation_errors_zero_for_exact_and_known_for_scaled():
     from experiments.metrics import relation_errors
-    from slam.geometry import between
+    from hardware.geometry import between
 
     gt = gt_traj()
     i, j = np.arange(0, 380, 7), np.arange(20, 400, 7)

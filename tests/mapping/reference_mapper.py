@@ -17,9 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import transform_points, wrap_angle
 from hardware.messages import DepthFrame
 from mapping.mapper import MapperConfig
-from slam.geometry import transform_points, wrap_angle
 
 
 class ReferenceMapper:

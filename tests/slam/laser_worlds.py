@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
+from hardware.geometry import wrap_angle
 from hardware.messages import LaserScan, VelocityOdometry
-from slam.geometry import wrap_angle
 from slam.trajectory import Trajectory
 
 

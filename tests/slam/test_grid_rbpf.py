@@ -16,10 +16,10 @@ from experiments.metrics import relation_errors
 from experiments.pipeline import Pipeline
 from experiments.studies.settings import build_config, source_settings
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import between
 from mapping.grid import HitCentroidGrid, OccupancyGrid
 from mapping.scan_points import scan_to_observation
 from slam.base import LOCALIZERS, create
-from slam.geometry import between
 from slam.grid_kernels import frame_log_likelihood, hill_climb
 from slam.grid_rbpf import GridRbpf
 from slam.particle_filter import ParticleFilterConfig

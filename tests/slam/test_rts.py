@@ -5,7 +5,7 @@ path agrees with a numerically linearised batch solution."""
 import numpy as np
 import pytest
 
-from slam.geometry import compose
+from hardware.geometry import compose
 from slam.motion import apply_increment, increment_jacobians
 from slam.rts import arc_steps, rts_smooth
 

@@ -16,9 +16,9 @@ from laser_worlds import HALL, ROOM, loop_messages, render_scan
 
 from experiments.metrics import ate, relation_errors
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import between, compose
 from hardware.messages import LaserScan
 from slam.base import create
-from slam.geometry import between, compose
 from slam.gtsam_smoother import GtsamConfig
 from slam.scan_matching import (
     Reference,

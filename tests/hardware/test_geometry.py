@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from hardware.frames import invert_transform, make_transform, rot_rpy, transform_points
-from slam.geometry import (
+from hardware.geometry import (
     between,
     compose,
     from_matrix,
@@ -10,7 +10,7 @@ from slam.geometry import (
     to_matrix,
     wrap_angle,
 )
-from slam.geometry import (
+from hardware.geometry import (
     transform_points as tp2,
 )
 

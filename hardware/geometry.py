@@ -1,8 +1,45 @@
-"""SE(2) pose algebra on arrays of poses (x, y, θ); θ wrapped to (−π, π]."""
+"""SE(2) pose algebra, at the bottom of the package order so that every package uses it.
+
+Poses are (x, y, θ), θ counter-clockwise and wrapped to (−π, π]. The array functions
+(`compose`, `inverse`, `between`, `transform_points`, ...) broadcast over arrays of
+poses; the `*1` functions take and return one pose as a tuple of floats with `math`
+(dataset importers walk millions of odometry lines one at a time, where numpy's
+per-call cost dominates).
+"""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+
+def wrap1(a: float) -> float:
+    """One angle wrapped to (−π, π] (exactly: IEEE remainder)."""
+    w = math.remainder(a, 2.0 * math.pi)
+    return math.pi if w == -math.pi else w
+
+
+def between1(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple:
+    """a⁻¹ ⊕ b for one pose each: pose b in the frame of pose a (dθ wrapped)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return (c * dx + s * dy, -s * dx + c * dy, wrap1(b[2] - a[2]))
+
+
+def compose1(a: tuple, b: tuple) -> tuple[float, float, float]:
+    """a ⊕ b for one pose each; θ is the plain sum (not wrapped), so that a chain of
+    increments keeps its total turn."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2])
+
+
+def arc_end1(ds: float, dtheta: float) -> tuple[float, float, float]:
+    """The pose reached from the origin by an exact arc of length ds turning by dtheta
+    (what slam.motion integrates for each odometry increment)."""
+    half = 0.5 * dtheta
+    chord = ds * (math.sin(half) / half if abs(half) > 1e-9 else 1.0 - half * half / 6.0)
+    return (chord * math.cos(half), chord * math.sin(half), dtheta)
 
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
