@@ -48,13 +48,8 @@ class Controller(ABC):
     def command(self, inp: ControlInput) -> BrakeCommand: ...
 
 
-def _load_builtin() -> None:
-    import control.closed_loop
-    import control.open_loop
-    import control.potential_field  # noqa: F401
-
-
-CONTROLLERS: Registry[Controller] = Registry("controller", _load_builtin)
+# Members: the entry points of group "walker_slam.controllers" (pyproject.toml).
+CONTROLLERS: Registry[Controller] = Registry("controller", "walker_slam.controllers")
 
 
 def create(name: str, calibration: WalkerCalibration, config: Any = None) -> Controller:

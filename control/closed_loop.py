@@ -53,10 +53,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.base import CONTROLLERS, ControlInput, Controller
+from control.base import ControlInput, Controller
 from control.perception import distance_ahead, to_walker_frame, turn_direction
 from hardware.calibration import WalkerCalibration
 from hardware.messages import BrakeCommand
+from hardware.registry import Spec
 
 
 @dataclass(frozen=True)
@@ -353,8 +354,9 @@ class ClosedLoop(Controller):
         return self._out(inp.t, brake.clamp(left * r_w), brake.clamp(right * r_w))
 
 
-CONTROLLERS.register(
+SPEC = Spec(
     "closed-loop",
     ClosedLoopConfig,
+    ClosedLoop,
     "least one-sided braking for the radius R = d + 0.5 m, eqs 5.11, 5.14-5.16",
-)(ClosedLoop)
+)

@@ -10,10 +10,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from control.base import CONTROLLERS, ControlInput, Controller
+from control.base import ControlInput, Controller
 from control.perception import distance_ahead, to_walker_frame, turn_direction
 from hardware.calibration import WalkerCalibration
 from hardware.messages import BrakeCommand
+from hardware.registry import Spec
 
 
 @dataclass(frozen=True)
@@ -91,7 +92,15 @@ class Manual(Controller):
         return BrakeCommand(inp.t, self.off, self.off, "none")
 
 
-CONTROLLERS.register("open-loop", OpenLoopConfig, "brake torque from front distance, eq 5.13")(
-    OpenLoop
+OPEN_LOOP = Spec(
+    "open-loop",
+    OpenLoopConfig,
+    OpenLoop,
+    "brake torque from front distance, eq 5.13",
 )
-CONTROLLERS.register("none", ManualConfig, "manual baseline: brakes released")(Manual)
+NONE = Spec(
+    "none",
+    ManualConfig,
+    Manual,
+    "manual baseline: brakes released",
+)

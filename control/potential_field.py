@@ -31,10 +31,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from control.base import CONTROLLERS, ControlInput, Controller
+from control.base import ControlInput, Controller
 from control.perception import to_walker_frame
 from hardware.calibration import WalkerCalibration
 from hardware.messages import BrakeCommand
+from hardware.registry import Spec
 
 
 @dataclass(frozen=True)
@@ -138,8 +139,9 @@ class PotentialField(Controller):
         return BrakeCommand(inp.t, brake.clamp(left), brake.clamp(right), "potential-field")
 
 
-CONTROLLERS.register(
+SPEC = Spec(
     "potential-field",
     PotentialFieldConfig,
+    PotentialField,
     "RT Walker style: brake away from the summed 1/r^k repulsion of nearby cells",
-)(PotentialField)
+)

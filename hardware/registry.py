@@ -1,40 +1,58 @@
-"""A name → factory registry with typed configs (localizers, controllers, ...)."""
+"""Name → factory registries with typed configs, found through Python entry points.
+
+A registry (localizers, controllers, dataset formats, depth cameras) lists what the
+installed packages declare in its entry-point group: walker-slam's own members are in
+its `pyproject.toml` (`[project.entry-points."walker_slam.localizers"]` …), and another
+package adds one by declaring an entry point in the same group, without editing
+walker-slam:
+
+    [project.entry-points."walker_slam.localizers"]
+    my-filter = "my_package.my_filter:SPEC"
+
+where `SPEC = Spec("my-filter", MyFilterConfig, MyFilter, "one line on what it does")`;
+the factory is called as `factory(config, *args)` (a localizer: `(config, calibration)`).
+A member module imports the registry's base module, never the other way round, so the
+packages have no import circles. `Registry.register` adds a member in code (tests,
+notebooks).
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from importlib.metadata import entry_points
 from typing import Any, Generic, TypeVar
+
+from hardware.errors import UnknownNameError
+
+__all__ = ["Registry", "Spec", "UnknownNameError"]
 
 T = TypeVar("T")
 
 
-class UnknownNameError(ValueError):
-    """A name that is not registered; the message lists the valid names."""
-
-    def __init__(self, kind: str, name: str, valid: list[str]) -> None:
-        super().__init__(f"unknown {kind} '{name}'; valid: {', '.join(valid)}")
-        self.valid = valid
-
-
 @dataclass(frozen=True)
 class Spec(Generic[T]):
+    """A registry member: its name, its config dataclass (or None when it takes none),
+    the factory, and a one-line summary."""
+
     name: str
-    config_type: type
+    config_type: type | None
     factory: Callable[..., T]
     summary: str
 
 
 class Registry(Generic[T]):
-    """Factories registered by name; `loader` imports the built-in modules on first use."""
+    """The members of entry-point group `group`, loaded on first use."""
 
-    def __init__(self, kind: str, loader: Callable[[], None]) -> None:
+    def __init__(self, kind: str, group: str) -> None:
         self.kind = kind
-        self._loader = loader
+        self.group = group
         self._loaded = False
         self._specs: dict[str, Spec[T]] = {}
 
-    def register(self, name: str, config_type: type, summary: str):
+    def register(self, name: str, config_type: type | None, summary: str):
+        """Decorator adding `factory` under `name` (members added in code)."""
+
         def deco(factory: Callable[..., T]) -> Callable[..., T]:
             self._specs[name] = Spec(name, config_type, factory, summary)
             return factory
@@ -42,9 +60,17 @@ class Registry(Generic[T]):
         return deco
 
     def _load(self) -> None:
-        if not self._loaded:
-            self._loaded = True
-            self._loader()
+        if self._loaded:
+            return
+        self._loaded = True
+        for ep in entry_points(group=self.group):
+            spec = ep.load()
+            if not isinstance(spec, Spec) or spec.name != ep.name:
+                raise TypeError(
+                    f"entry point {ep.name} = {ep.value} in {self.group} must name a "
+                    f"Spec called {ep.name!r}, got {spec!r}"
+                )
+            self._specs.setdefault(spec.name, spec)
 
     def names(self) -> list[str]:
         self._load()
@@ -59,6 +85,8 @@ class Registry(Generic[T]):
     def create(self, name: str, *args: Any, config: Any = None) -> T:
         """Build `name` with `config` (its defaults when None) and the given arguments."""
         spec = self.spec(name)
+        if spec.config_type is None:
+            return spec.factory(*args)
         cfg = spec.config_type() if config is None else config
         if not isinstance(cfg, spec.config_type):
             raise TypeError(f"{name} takes a {spec.config_type.__name__}, got {type(cfg).__name__}")

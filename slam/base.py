@@ -57,17 +57,8 @@ class Localizer(ABC):
         frames against the map (particle-filter) keep it, the others ignore it."""
 
 
-def _load_builtin() -> None:
-    # Importing the modules runs their registrations.
-    import slam.dead_reckoning
-    import slam.ekf_slam
-    import slam.fastslam
-    import slam.gtsam_smoother
-    import slam.particle_filter  # noqa: F401
-
-
-LOCALIZERS: Registry[Localizer] = Registry("localizer", _load_builtin)
-register = LOCALIZERS.register
+# Members: the entry points of group "walker_slam.localizers" (pyproject.toml).
+LOCALIZERS: Registry[Localizer] = Registry("localizer", "walker_slam.localizers")
 
 
 def available() -> list[str]:

@@ -8,7 +8,8 @@ import numpy as np
 
 from hardware.calibration import WalkerCalibration
 from hardware.messages import Message
-from slam.base import Localizer, PoseEstimate, register
+from hardware.registry import Spec
+from slam.base import Localizer, PoseEstimate
 from slam.motion import MotionNoise, OdometryModel, propagate
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
@@ -55,8 +56,9 @@ class DeadReckoning(Localizer):
         return self.track.trajectory()
 
 
-register(
+SPEC = Spec(
     "dead-reckoning",
     DeadReckoningConfig,
+    DeadReckoning,
     "exact differential-drive integration of encoder ticks or velocity odometry",
-)(DeadReckoning)
+)

@@ -16,7 +16,8 @@ import numpy as np
 from hardware.calibration import WalkerCalibration
 from hardware.geometry import wrap_angle
 from hardware.messages import Message
-from slam.base import Localizer, PoseEstimate, register
+from hardware.registry import Spec
+from slam.base import Localizer, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -233,8 +234,9 @@ class EkfSlam(Localizer):
         return notes
 
 
-register(
+SPEC = Spec(
     "ekf-slam",
     EkfSlamConfig,
+    EkfSlam,
     "EKF over the pose and all landmarks (known IDs), range-bearing updates",
-)(EkfSlam)
+)

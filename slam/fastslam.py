@@ -73,7 +73,8 @@ import numpy as np
 from hardware.calibration import WalkerCalibration
 from hardware.geometry import wrap_angle
 from hardware.messages import Message
-from slam.base import Localizer, PoseEstimate, register
+from hardware.registry import Spec
+from slam.base import Localizer, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -683,8 +684,9 @@ class FastSlam(Localizer):
         return notes
 
 
-register(
+SPEC = Spec(
     "fastslam",
     FastSlamConfig,
+    FastSlam,
     "FastSLAM 1.0/2.0 particle filter with per-tag landmark EKFs (known IDs)",
-)(FastSlam)
+)

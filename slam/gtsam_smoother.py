@@ -79,7 +79,8 @@ from gtsam.symbol_shorthand import L, T, X
 from hardware.calibration import WalkerCalibration
 from hardware.geometry import compose, wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
-from slam.base import Localizer, PoseEstimate, register
+from hardware.registry import Spec
+from slam.base import Localizer, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -695,8 +696,9 @@ class GtsamSmoother(Localizer):
         return notes
 
 
-register(
+SPEC = Spec(
     "gtsam",
     GtsamConfig,
+    GtsamSmoother,
     "iSAM2 smoother over keyframes and landmarks (BetweenFactorPose2, BearingRangeFactor2D)",
-)(GtsamSmoother)
+)

@@ -75,9 +75,10 @@ from scipy.special import logsumexp
 from hardware.calibration import WalkerCalibration
 from hardware.geometry import wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
+from hardware.registry import Spec
 from mapping.depth_points import DepthConfig, project_depth_frame
 from mapping.scan_points import ScanConfig, scan_to_observation
-from slam.base import Localizer, PoseEstimate, register
+from slam.base import Localizer, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -712,9 +713,10 @@ def _particle_filter(config: ParticleFilterConfig, calibration: WalkerCalibratio
     return ParticleFilter(config, calibration)
 
 
-register(
+SPEC = Spec(
     "particle-filter",
     ParticleFilterConfig,
+    _particle_filter,
     "Monte Carlo localization: known landmark map and/or a likelihood field of the shared "
     "map; or (maps=per-particle) a Rao-Blackwellized filter with a map per particle",
-)(_particle_filter)
+)

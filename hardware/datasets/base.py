@@ -100,15 +100,8 @@ class Dataset:
         return f"Dataset({fmt} {self.name!r}, {self.counts()})"
 
 
-def _load_builtin() -> None:
-    # Importing the modules runs their registrations.
-    import hardware.datasets.carmen
-    import hardware.datasets.mrclam
-    import hardware.datasets.victoria_park  # noqa: F401
-
-
-FORMATS: Registry[Dataset] = Registry("dataset format", _load_builtin)
-register = FORMATS.register
+# Members: the entry points of group "walker_slam.dataset_formats" (pyproject.toml).
+FORMATS: Registry[Dataset] = Registry("dataset format", "walker_slam.dataset_formats")
 
 
 def available_formats() -> list[str]:

@@ -142,11 +142,11 @@ from hardware.datasets.base import (
     check_choice,
     groundtruth_stream,
     options_dict,
-    register,
 )
 from hardware.datasets.textio import iter_lines, parse_floats, read_table
 from hardware.geometry import arc_end1, between1, compose1, wrap1
 from hardware.messages import GroundTruthPose, LaserScan, VelocityOdometry
+from hardware.registry import Spec
 
 ODOMETRY_MODES = ("smooth", "exact")
 TIMESTAMP_MODES = ("auto", "log", "synthetic")
@@ -868,8 +868,9 @@ def open_carmen(options: CarmenOptions, path: Path) -> Dataset:
     return Dataset(name, WalkerCalibration(), metadata, streams, arrays)
 
 
-register(
+SPEC = Spec(
     "carmen",
     CarmenOptions,
+    open_carmen,
     "CARMEN laser log (GMapping-corrected): laser scans, raw odometry, corrected poses",
-)(open_carmen)
+)

@@ -97,11 +97,11 @@ from hardware.datasets.base import (
     groundtruth_stream,
     interpolate_pose,
     options_dict,
-    register,
     sorted_stream_order,
 )
 from hardware.datasets.textio import Table, find_file, find_optional, read_table
 from hardware.messages import GroundTruthPose, RangeBearing, VelocityOdometry
+from hardware.registry import Spec
 
 ROBOTS = (1, 2, 3, 4, 5)
 LANDMARK_SUBJECTS = tuple(range(6, 21))
@@ -377,8 +377,9 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
     return Dataset(name, calibration, metadata, streams, arrays)
 
 
-register(
+SPEC = Spec(
     "mrclam",
     MrclamOptions,
+    open_mrclam,
     "UTIAS MRCLAM dataset folder, one robot: velocity odometry, known-ID range-bearing, Vicon",
-)(open_mrclam)
+)

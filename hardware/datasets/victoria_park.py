@@ -59,12 +59,12 @@ from hardware.datasets.base import (
     as_float,
     check_choice,
     options_dict,
-    register,
     sorted_stream_order,
 )
 from hardware.datasets.textio import find_file, read_table
 from hardware.geometry import wrap1
 from hardware.messages import RangeBearing, VelocityOdometry
+from hardware.registry import Spec
 
 WHEELBASE_M = 2.83  # L
 ENCODER_OFFSET_M = 0.76  # H: rear-left encoder wheel, left of the centreline
@@ -228,8 +228,9 @@ def open_victoria_park(options: VictoriaParkOptions, path: Path) -> Dataset:
     return Dataset("victoria_park", calibration, metadata, streams, arrays)
 
 
-register(
+SPEC = Spec(
     "victoria-park",
     VictoriaParkOptions,
+    open_victoria_park,
     "ACFR Victoria Park folder: car odometry (speed + steering), tree detections, GPS",
-)(open_victoria_park)
+)
