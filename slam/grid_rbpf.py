@@ -1,6 +1,6 @@
 """Rao-Blackwellized particle filter with an occupancy grid per particle (grid FastSLAM).
 
-`particle-filter` with `maps="per-particle"`: each of `map_particles` particles carries
+The localizer `grid-rbpf`: each of `n_particles` particles carries
 its own path and its own occupancy grid built along that path, as GMapping does
 (Grisetti, Stachniss and Burgard, IEEE T-RO 2007). Where one map shared by every particle
 cannot undo a drift that has been mapped (a loop comes back to walls mapped twice), the
@@ -39,34 +39,121 @@ maps use the attached mapper's configuration (grid, depth, scan).
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
 from hardware.geometry import wrap_angle
 from hardware.messages import DepthFrame, LaserScan
+from hardware.registry import Spec
 from mapping.depth_points import project_depth_frame
 from mapping.grid import GridExtent, HitCentroidGrid, make_grid
 from mapping.mapper import MapperConfig
 from mapping.scan_points import scan_to_observation
 from slam.base import PoseEstimate
 from slam.grid_kernels import frame_log_likelihood, hill_climb, poses_log_likelihood
+from slam.measurement import BEARING_SIGMA_RAD, RANGE_SIGMA_FRAC, RANGE_SIGMA_M
+from slam.motion import MotionNoise
 from slam.particle_filter import ParticleFilter, ParticleFilterConfig
 from slam.particle_paths import ParticlePaths
 from slam.scan_proposal import gaussian_fit, lattice, sample_gaussians
 from slam.trajectory import Trajectory
 
 
+@dataclass(frozen=True)
+class GridRbpfConfig:
+    """Per-particle-map filter settings (the module docstring has the algorithm).
+
+    initial_pose, initial_sigma, noise, landmark_map, use_landmarks, the landmark noise
+    (range_sigma_m, range_sigma_frac, bearing_sigma_rad, outlier_prob, outlier_range_m),
+    max_beams, max_range_m, min_points, scan_every_m / scan_every_rad, seed,
+    resample_threshold and the proposal's lattice (proposal_*): as in
+    slam.particle_filter.ParticleFilterConfig, whose machinery this filter reuses.
+    n_particles: particles, each with its own grid.
+    The scan match (slam.grid_kernels): a point scores against the hit centroid of the
+    nearest occupied cell within ± match_kernel_cells, a Gaussian of σ = match_sigma_m
+    (with z_hit, z_rand as the shared-map filter's), times match_beam_weight;
+    match_step_m / match_step_rad: first steps, halved match_refinements times;
+    match_turn_starts_sigma: when this many of the odometry's heading σ since the last
+    frame reach two match_step_rad (a sharp turn between scans), the match also starts
+    from the odometry pose turned by ± that much and keeps the best of the three climbs
+    (on the Intel log a 10° odometry error in one turn is beyond the climb's reach: 2 of
+    3 seeds broke there without it); 0 disables; match_fit_step_m / match_fit_step_rad:
+    the lattice the proposal's Gaussian is fitted on. weight_gain: a frame's log-weights
+    are divided by it (GMapping's "ogain"): the proposal follows the sharp likelihood
+    while the weights, which decide which particles (and maps) survive, are smoothed, so
+    that resampling does not deplete the particles at every frame. The defaults were
+    chosen on the Intel lab log (BENCHMARKS.md: 60 particles, σ 0.03 m, gain 20; 30
+    particles fail a late loop on some seeds).
+    """
+
+    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    initial_sigma: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    n_particles: int = 60
+    noise: MotionNoise = field(default_factory=MotionNoise)
+    range_sigma_m: float = RANGE_SIGMA_M
+    range_sigma_frac: float = RANGE_SIGMA_FRAC
+    bearing_sigma_rad: float = BEARING_SIGMA_RAD
+    landmark_map: dict[int, np.ndarray] | None = None
+    use_landmarks: bool = True
+    z_hit: float = 0.9
+    z_rand: float = 0.1
+    max_beams: int = 60
+    max_range_m: float = 3.5
+    min_points: int = 10
+    scan_every_m: float = 0.2
+    scan_every_rad: float = 0.2
+    seed: int = 0
+    resample_threshold: float = 0.5
+    outlier_prob: float = 0.01
+    outlier_range_m: float = 10.0
+    proposal_window_m: tuple[float, float] = (0.15, 0.5)
+    proposal_window_rad: tuple[float, float] = (0.05, 0.3)
+    proposal_step_m: float = 0.05
+    proposal_step_rad: float = 0.02
+    proposal_fine_steps: int = 3
+    proposal_sigma_floor: tuple[float, float, float] = (0.01, 0.01, 0.005)
+    match_kernel_cells: int = 1
+    match_sigma_m: float = 0.03
+    match_beam_weight: float = 1.0
+    match_step_m: float = 0.05
+    match_step_rad: float = 0.05
+    match_refinements: int = 5
+    match_turn_starts_sigma: float = 1.5
+    match_fit_step_m: float = 0.02
+    match_fit_step_rad: float = 0.01
+    weight_gain: float = 20.0
+
+    def __post_init__(self) -> None:
+        if self.n_particles < 1 or self.match_kernel_cells < 0 or self.match_refinements < 0:
+            raise ValueError("need n_particles >= 1, match_kernel_cells, refinements >= 0")
+        if self.match_turn_starts_sigma < 0:
+            raise ValueError(
+                f"match_turn_starts_sigma must be >= 0, got {self.match_turn_starts_sigma}"
+            )
+        if self.weight_gain < 1.0:
+            raise ValueError(f"weight_gain must be >= 1, got {self.weight_gain}")
+        if self.match_sigma_m <= 0 or self.match_beam_weight <= 0:
+            raise ValueError("match_sigma_m and match_beam_weight must be > 0")
+        self.machinery()  # the shared filter's checks of the fields it takes
+
+    def machinery(self) -> ParticleFilterConfig:
+        """The shared-map filter's parameters for the machinery this filter reuses
+        (prediction, landmark weighting, resampling, the scan proposal's odometry)."""
+        shared = {f.name for f in fields(ParticleFilterConfig)}
+        kept = {f.name: getattr(self, f.name) for f in fields(self) if f.name in shared}
+        return ParticleFilterConfig(**kept, use_scans=True, proposal="scan", smoother="none")
+
+
 class GridRbpf(ParticleFilter):
-    """See the module docstring; built by `slam.base.create("particle-filter", ...)` when
-    the config has maps="per-particle"."""
+    """See the module docstring; the localizer `grid-rbpf`."""
 
     revises_past = True
 
-    def __init__(self, config: ParticleFilterConfig, calibration: WalkerCalibration) -> None:
-        base = replace(config, n_particles=config.map_particles, proposal="scan", smoother="none")
-        super().__init__(base, calibration)
+    def __init__(self, config: GridRbpfConfig, calibration: WalkerCalibration) -> None:
+        super().__init__(config.machinery(), calibration)
+        self.config = config  # (self.pf: the machinery's parameters)
         self.revises_past = True  # the best particle's path (the base's smoothers unused)
         self._maps: list[GridExtent] = []
         self._map_config = MapperConfig()
@@ -132,8 +219,6 @@ class GridRbpf(ParticleFilter):
     # -- frames ---------------------------------------------------------------------------
     def _observe_frame(self, msg: DepthFrame | LaserScan) -> None:
         c = self.config
-        if not c.use_scans:
-            return
         if self._moved[0] < c.scan_every_m and self._moved[1] < c.scan_every_rad:
             return
         obs, scored_obs = self._observation(msg)
@@ -289,3 +374,12 @@ class GridRbpf(ParticleFilter):
         notes = super().diagnostics()
         notes["distinct_maps"] = len({id(m) for m in self._maps})
         return notes
+
+
+SPEC = Spec(
+    "grid-rbpf",
+    GridRbpfConfig,
+    GridRbpf,
+    "Rao-Blackwellized particle filter with an occupancy grid per particle (grid FastSLAM "
+    "/ GMapping style): scan-matched improved proposal on laser scans or depth frames",
+)

@@ -160,29 +160,9 @@ class ParticleFilterConfig:
         proposal_window_rad, in steps of proposal_step_m and proposal_step_rad; the fine
         lattice around its best pose has proposal_fine_steps steps per coarse step either
         side; proposal_sigma_floor (x, y, θ) is added to every prior's σ (in quadrature).
-    maps: "shared" (default): frames are scored against the attached map, the one map
-        that the pipeline builds at this filter's estimates (Monte Carlo localization);
-        "per-particle": every particle carries its own occupancy grid (a
-        Rao-Blackwellized filter, grid FastSLAM / GMapping: slam.grid_rbpf), with
-        map_particles particles (n_particles is then not used), the "scan" proposal's
-        odometry handling, and a hill-climbing scan match per particle and frame
-        against its map (slam.grid_kernels): a point scores against the hit centroid of
-        the nearest occupied cell within ± match_kernel_cells, a Gaussian of σ =
-        match_sigma_m (z_hit, z_rand as above), times match_beam_weight (they take the
-        place of sigma_hit_m and beam_weight); match_step_m / match_step_rad: first
-        steps, halved match_refinements times; match_turn_starts_sigma: when this many
-        of the odometry's heading σ since the last frame reach two match_step_rad (a
-        sharp turn between scans), the match also starts from the odometry pose turned
-        by ± that much and keeps the best of the three climbs (on the Intel log a 10°
-        odometry error in one turn is beyond the climb's reach: 2 of 3 seeds broke
-        there without it); 0 disables; match_fit_step_m / match_fit_step_rad: the
-        lattice the proposal's Gaussian is fitted on; weight_gain: a frame's log-weights
-        are divided by it (GMapping's "ogain"): the proposal follows the sharp
-        likelihood while the weights, which decide which particles (and maps) survive,
-        are smoothed, so that resampling does not deplete the particles at every frame.
-        Its trajectory is the most probable particle's path (`smoother` is not used).
-        The defaults were chosen on the Intel lab log (BENCHMARKS.md: 60 particles,
-        σ 0.03 m, gain 20; 30 particles fail a late loop on some seeds).
+    Frames are scored against the attached map, the one map that the pipeline builds at
+    this filter's estimates (Monte Carlo localization); slam.grid_rbpf (`grid-rbpf`) is
+    the Rao-Blackwellized filter with a map per particle.
     """
 
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -221,18 +201,6 @@ class ParticleFilterConfig:
     proposal_step_rad: float = 0.02
     proposal_fine_steps: int = 3
     proposal_sigma_floor: tuple[float, float, float] = (0.01, 0.01, 0.005)
-    maps: str = "shared"
-    map_particles: int = 60
-    match_kernel_cells: int = 1
-    match_sigma_m: float = 0.03
-    match_beam_weight: float = 1.0
-    match_step_m: float = 0.05
-    match_step_rad: float = 0.05
-    match_refinements: int = 5
-    match_turn_starts_sigma: float = 1.5
-    match_fit_step_m: float = 0.02
-    match_fit_step_rad: float = 0.01
-    weight_gain: float = 20.0
 
     def __post_init__(self) -> None:
         if self.smoother not in SMOOTHERS:
@@ -241,18 +209,6 @@ class ParticleFilterConfig:
             )
         if not 0.0 <= self.outlier_prob < 1.0 or self.outlier_range_m <= 0:
             raise ValueError("outlier_prob must be in [0, 1) and outlier_range_m > 0")
-        if self.maps not in ("shared", "per-particle"):
-            raise ValueError(f"maps must be 'shared' or 'per-particle', got {self.maps!r}")
-        if self.map_particles < 1 or self.match_kernel_cells < 0 or self.match_refinements < 0:
-            raise ValueError("need map_particles >= 1, match_kernel_cells, refinements >= 0")
-        if self.match_turn_starts_sigma < 0:
-            raise ValueError(
-                f"match_turn_starts_sigma must be >= 0, got {self.match_turn_starts_sigma}"
-            )
-        if self.weight_gain < 1.0:
-            raise ValueError(f"weight_gain must be >= 1, got {self.weight_gain}")
-        if self.match_sigma_m <= 0 or self.match_beam_weight <= 0:
-            raise ValueError("match_sigma_m and match_beam_weight must be > 0")
         if self.proposal not in ("motion", "scan"):
             raise ValueError(f"proposal must be 'motion' or 'scan', got {self.proposal!r}")
         if min(self.proposal_step_m, self.proposal_step_rad) <= 0 or self.proposal_fine_steps < 1:
@@ -315,6 +271,9 @@ class ParticleFilter(Localizer):
 
     def __init__(self, config: ParticleFilterConfig, calibration: WalkerCalibration) -> None:
         self.config = config
+        # the parameters the filter machinery reads (the per-particle-map filter, which
+        # reuses it, keeps its own config in `config`)
+        self.pf: ParticleFilterConfig = config
         self.calibration = calibration
         self.odometry = OdometryModel(calibration, config.noise)
         self.rng = np.random.default_rng(config.seed)
@@ -387,7 +346,7 @@ class ParticleFilter(Localizer):
 
     def _predict(self, inc: Increment) -> None:
         self._maybe_resample()
-        if self.config.proposal == "scan":
+        if self.pf.proposal == "scan":
             self.particles = apply_increment(self.particles, inc.ds, inc.dtheta)
             self._odo_delta, self._odo_cov, _ = propagate(
                 self._odo_delta, self._odo_cov, inc.ds, inc.dtheta, inc.cov
@@ -415,7 +374,7 @@ class ParticleFilter(Localizer):
         self._draw_odometry_noise()
         z = obs.z[rows]  # (M, 2)
         lm = self._landmarks[[known[k] for k in rows]]  # (M, 2)
-        c = self.config
+        c = self.pf
         sr = c.range_sigma_m + c.range_sigma_frac * z[:, 0]  # (M,)
         zhat = range_bearing(self.particles[:, None, :], lm[None, :, :])  # (N, M, 2)
         dr = (z[None, :, 0] - zhat[..., 0]) / sr
@@ -434,7 +393,7 @@ class ParticleFilter(Localizer):
         self.counts["landmark_observations"] += len(rows)
 
     def _observe_frame(self, msg: DepthFrame | LaserScan) -> None:
-        c = self.config
+        c = self.pf
         if not c.use_scans or self.map_source is None:
             return
         if self._moved[0] < c.scan_every_m and self._moved[1] < c.scan_every_rad:
@@ -463,20 +422,20 @@ class ParticleFilter(Localizer):
 
     def _score(self, poses: np.ndarray, points: np.ndarray, f: _Field) -> np.ndarray:
         """The frame's log-likelihood (times beam_weight) at each of the poses (M,)."""
-        return self.config.beam_weight * f.log_p[self._cells(poses, points, f)].sum(axis=1)
+        return self.pf.beam_weight * f.log_p[self._cells(poses, points, f)].sum(axis=1)
 
     def _prior_cov(self) -> np.ndarray:
         """(N, 3, 3) world-frame covariance of each particle's accumulated odometry, with
         the floor: the odometry frame is the pose the particle was last drawn at."""
-        floor = np.diag(np.square(self.config.proposal_sigma_floor))
+        floor = np.diag(np.square(self.pf.proposal_sigma_floor))
         anchor_heading = self.particles[:, 2] - self._odo_delta[2]
         return rotate_covariance(np.array(self._odo_cov) + floor, anchor_heading)
 
     def _draw_odometry_noise(self) -> None:
         """Proposal "scan": draw the odometry noise accumulated since the last draw."""
-        if self.config.proposal != "scan" or not any(self._odo_cov[i][i] for i in range(3)):
+        if self.pf.proposal != "scan" or not any(self._odo_cov[i][i] for i in range(3)):
             return
-        cov = self._prior_cov() - np.diag(np.square(self.config.proposal_sigma_floor))
+        cov = self._prior_cov() - np.diag(np.square(self.pf.proposal_sigma_floor))
         cov += 1e-18 * np.eye(3)  # positive definite for the Cholesky factor
         self.particles = sample_gaussians(self.particles, cov, self.rng)
         self._reset_odometry()
@@ -487,7 +446,7 @@ class ParticleFilter(Localizer):
 
     def _scan_proposal(self, points: np.ndarray, f: _Field, t: float) -> None:
         """Draw every particle from odometry prior × frame likelihood (slam.scan_proposal)."""
-        c = self.config
+        c = self.pf
         prior = self._prior_cov()
         mean = self._mean()
         spread = np.sqrt(np.diagonal(prior, axis1=1, axis2=2).max(axis=0))
@@ -526,8 +485,8 @@ class ParticleFilter(Localizer):
         sensor (a random subset, from the filter's generator, when there are more)."""
         pts = np.asarray(obs.obstacles, dtype=float)
         rel = pts - obs.sensor_xy
-        pts = pts[np.einsum("ij,ij->i", rel, rel) <= self.config.max_range_m**2]
-        k = self.config.max_beams
+        pts = pts[np.einsum("ij,ij->i", rel, rel) <= self.pf.max_range_m**2]
+        k = self.pf.max_beams
         if len(pts) > k:
             pts = pts[np.sort(self.rng.choice(len(pts), size=k, replace=False))]
         return pts
@@ -536,7 +495,7 @@ class ParticleFilter(Localizer):
         """The field of the part of `grid` within FIELD_MARGIN_M + max_range_m of `centre`
         (all a frame scored before the next refresh can reach), or None when that part
         has fewer than min_map_cells occupied cells."""
-        c = self.config
+        c = self.pf
         occupied = np.asarray(grid.occupied())
         ny, nx = occupied.shape
         res = float(grid.resolution)
@@ -614,10 +573,10 @@ class ParticleFilter(Localizer):
             return
         self._resample_due = False
         n = len(self._weights)
-        if self.n_eff >= self.config.resample_threshold * n:
+        if self.n_eff >= self.pf.resample_threshold * n:
             return
         idx = systematic_resample(self._weights, self.rng)
-        if self.config.smoother == "ancestry":
+        if self.pf.smoother == "ancestry":
             self.paths.resampled(idx)
         self.particles = self.particles[idx]
         self._resampled(idx)
@@ -651,7 +610,7 @@ class ParticleFilter(Localizer):
         d = self.particles - mean
         d[:, 2] = wrap_angle(d[:, 2])
         cov = (d * self._weights[:, None]).T @ d
-        if self.config.proposal == "scan":  # the odometry noise not drawn yet
+        if self.pf.proposal == "scan":  # the odometry noise not drawn yet
             cov = cov + rotate_covariance(np.array(self._odo_cov), mean[2:3])[0]
         return mean, 0.5 * (cov + cov.T)
 
@@ -669,7 +628,7 @@ class ParticleFilter(Localizer):
                 self._delta, self._delta_cov = np.zeros(3), np.zeros((3, 3))
             elif self.track.last_t == t:  # the same time again: the last step, updated
                 self._f_cov[-1] = cov
-        if self.config.smoother == "ancestry":
+        if self.pf.smoother == "ancestry":
             self.paths.snapshot(t, self.particles)
 
     def estimate(self) -> PoseEstimate:
@@ -704,19 +663,10 @@ class ParticleFilter(Localizer):
         return notes
 
 
-def _particle_filter(config: ParticleFilterConfig, calibration: WalkerCalibration) -> Localizer:
-    """The shared-map filter, or with maps="per-particle" the Rao-Blackwellized one."""
-    if config.maps == "per-particle":
-        from slam.grid_rbpf import GridRbpf  # imports this module
-
-        return GridRbpf(config, calibration)
-    return ParticleFilter(config, calibration)
-
-
 SPEC = Spec(
     "particle-filter",
     ParticleFilterConfig,
-    _particle_filter,
+    ParticleFilter,
     "Monte Carlo localization: known landmark map and/or a likelihood field of the shared "
-    "map; or (maps=per-particle) a Rao-Blackwellized filter with a map per particle",
+    "map (the per-particle-map filter is grid-rbpf)",
 )

@@ -12,16 +12,16 @@ import numpy as np
 import pytest
 from laser_worlds import ROOM, loop_messages, render_scan
 
+from experiments.config import configure
 from experiments.metrics import relation_errors
 from experiments.pipeline import Pipeline
-from experiments.studies.settings import build_config, source_settings
 from hardware.calibration import WalkerCalibration
 from hardware.geometry import between
 from mapping.grid import HitCentroidGrid, OccupancyGrid
 from mapping.scan_points import scan_to_observation
 from slam.base import LOCALIZERS, create
 from slam.grid_kernels import frame_log_likelihood, hill_climb
-from slam.grid_rbpf import GridRbpf
+from slam.grid_rbpf import GridRbpf, GridRbpfConfig
 from slam.particle_filter import ParticleFilterConfig
 from slam.scan_proposal import gaussian_fit, lattice
 
@@ -87,10 +87,8 @@ def test_a_sharp_turn_is_matched_from_turned_starts(error_deg):
     prior = np.diag([0.05**2, 0.05**2, 0.2**2])
 
     def match(sigmas: float) -> np.ndarray:
-        cfg = ParticleFilterConfig(
-            use_scans=True, maps="per-particle", match_turn_starts_sigma=sigmas
-        )
-        rbpf = create("particle-filter", WalkerCalibration(), cfg)
+        cfg = GridRbpfConfig(match_turn_starts_sigma=sigmas)
+        rbpf = create("grid-rbpf", WalkerCalibration(), cfg)
         c = rbpf.config
         pose, _ = rbpf._match(
             args, pts, start, prior, (c.match_kernel_cells, c.match_sigma_m, c.z_hit, c.z_rand)
@@ -102,7 +100,7 @@ def test_a_sharp_turn_is_matched_from_turned_starts(error_deg):
     assert abs(alone[2]) > math.radians(10.0)
     assert math.hypot(turned[0], turned[1]) < 0.01 and abs(turned[2]) < math.radians(0.5)
     with pytest.raises(ValueError, match="match_turn_starts_sigma"):
-        ParticleFilterConfig(match_turn_starts_sigma=-1.0)
+        GridRbpfConfig(match_turn_starts_sigma=-1.0)
 
 
 def test_gaussian_fit_is_the_product_of_two_gaussians():
@@ -129,18 +127,17 @@ def test_gaussian_fit_is_the_product_of_two_gaussians():
     assert got == pytest.approx(want, abs=0.01)
 
 
-def _run(msgs, cfg: ParticleFilterConfig, start):
+def _run(msgs, cfg: ParticleFilterConfig | GridRbpfConfig, start):
     cal = WalkerCalibration()
-    loc = create("particle-filter", cal, cfg, initial_pose=start)
+    name = "grid-rbpf" if isinstance(cfg, GridRbpfConfig) else "particle-filter"
+    loc = create(name, cal, cfg, initial_pose=start)
     pipe = Pipeline(loc, cal, reference_map=False)
     for m in msgs:
         pipe.feed(m)
     return loc, pipe
 
 
-RBPF = ParticleFilterConfig(
-    use_scans=True, maps="per-particle", map_particles=10, max_range_m=20.0, max_beams=120
-)
+RBPF = GridRbpfConfig(n_particles=10, max_range_m=20.0, max_beams=120)
 
 
 def test_a_map_per_particle_removes_the_drift_of_biased_odometry():
@@ -200,17 +197,16 @@ def test_intel_lab_subset_relations_beat_dead_reckoning():
     msgs = [m for m in ds.messages() if m.t <= 500.0]  # out of the start room and back
     start = ds.metadata["config"]["initial_pose"]
     rel = np.array(ds.metadata["relations"]["rows"])
-    # as `walkerslam replay --format carmen ... --set particle-filter.use_scans=true
-    # --set particle-filter.maps=per-particle` builds it: the log's proposed settings
-    # (distance-based odometry noise, the laser's beams and range), then the two fields
-    proposed = source_settings(LOCALIZERS, "particle-filter", ds.metadata)
-    assert proposed["noise.velocity_model"] == "distance" and proposed["max_beams"] == 180
-    sets = [*proposed.items(), ("use_scans", True), ("maps", "per-particle")]
-    cfg = build_config(LOCALIZERS, "particle-filter", sets)
+    # as `walkerslam replay --format carmen ... --localizer grid-rbpf` builds it: the
+    # log's proposed settings (distance-based odometry noise, the laser's beams and range)
+    built = configure(LOCALIZERS, "grid-rbpf", ds.metadata)
+    assert built.proposed["noise.velocity_model"] == "distance"
+    assert built.proposed["max_beams"] == 180
+    cfg = built.config
     dr = create("dead-reckoning", ds.calibration, initial_pose=start)
     for m in msgs:
         dr.process(m)
-    rbpf = create("particle-filter", ds.calibration, cfg, initial_pose=start)
+    rbpf = create("grid-rbpf", ds.calibration, cfg, initial_pose=start)
     pipe = Pipeline(rbpf, ds.calibration, reference_map=False)
     for m in msgs:
         pipe.feed(m)
