@@ -1,10 +1,12 @@
 """Drag metrics: how brake-induced wheel slip drags obstacles across the map, and what the
 dragged map does to the braking controller (thesis §6.4, Fig 6.11).
 
-All of them are measured while a trial log is replayed: `observe` wraps the log's
+All of them are measured while a trial log is replayed: `Observed` wraps the log's
 message stream and calls the observers below before and after the pipeline takes each
 message, so they see the localizer's pose and the map exactly as they were at that
-moment (the map the controller saw, not the final one).
+moment (the map the controller saw, not the final one). Their figures (`drag.png`,
+`controller_replay.png`) are drawn by `experiments.drag_figures`; this module holds no
+plotting code.
 
 Definitions (the README's wording):
 
@@ -715,52 +717,74 @@ def over_steer(
     braking = (tested.max(axis=1) - off > thr) | (reference.max(axis=1) - off > thr)
     edges = np.diff(np.concatenate([[0], braking.astype(int), [0]]))
     starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    episodes = []
-    for a, b in zip(starts, stops, strict=True):
-        psi_test = float(u_test[a:b] @ dt[a:b])
-        psi_ref = float(u_ref[a:b] @ dt[a:b])
-        s = math.copysign(1.0, psi_test) if psi_test != 0.0 else 0.0
-        if s == 0.0:
-            over, under = 0.0, abs(psi_ref)
-        else:
-            over = max(0.0, s * (psi_test - psi_ref))
-            under = max(0.0, -s * (psi_test - psi_ref))
-        row = {
-            "t_start": float(t[a]),
-            "duration_s": float(dt[a:b].sum()),
-            "commanded_deg": math.degrees(psi_test),
-            "required_deg": math.degrees(psi_ref),
-            "over_steer_deg": math.degrees(over),
-            "under_steer_deg": math.degrees(under),
-            "wrong_way": bool(psi_test * psi_ref < 0),
-        }
-        if truth is not None and len(truth) > 1:
-            h = unwrapped_heading(truth, [t[a], t[a] + row["duration_s"]])
-            row["true_heading_change_deg"] = math.degrees(h[1] - h[0])
-        episodes.append(row)
+    episodes = [
+        _episode(t, dt, u_test, u_ref, a, b, truth) for a, b in zip(starts, stops, strict=True)
+    ]
+    out.update(_steer_totals(episodes, tested, reference, thr))
+    return out, episodes
+
+
+def _episode(
+    t: np.ndarray,
+    dt: np.ndarray,
+    u_test: np.ndarray,
+    u_ref: np.ndarray,
+    a: int,
+    b: int,
+    truth: Trajectory | None,
+) -> dict[str, float]:
+    """over_steer.csv's row of the braking episode of ticks [a, b)."""
+    psi_test = float(u_test[a:b] @ dt[a:b])
+    psi_ref = float(u_ref[a:b] @ dt[a:b])
+    s = math.copysign(1.0, psi_test) if psi_test != 0.0 else 0.0
+    if s == 0.0:
+        over, under = 0.0, abs(psi_ref)
+    else:
+        over = max(0.0, s * (psi_test - psi_ref))
+        under = max(0.0, -s * (psi_test - psi_ref))
+    row = {
+        "t_start": float(t[a]),
+        "duration_s": float(dt[a:b].sum()),
+        "commanded_deg": math.degrees(psi_test),
+        "required_deg": math.degrees(psi_ref),
+        "over_steer_deg": math.degrees(over),
+        "under_steer_deg": math.degrees(under),
+        "wrong_way": bool(psi_test * psi_ref < 0),
+    }
+    if truth is not None and len(truth) > 1:
+        h = unwrapped_heading(truth, [t[a], t[a] + row["duration_s"]])
+        row["true_heading_change_deg"] = math.degrees(h[1] - h[0])
+    return row
+
+
+def _steer_totals(
+    episodes: list[dict[str, float]],
+    tested: np.ndarray,
+    reference: np.ndarray,
+    threshold_nm: float,
+) -> dict[str, Any]:
+    """metrics.json's `over_steer` totals over the episodes."""
     over_deg = np.array([e["over_steer_deg"] for e in episodes])
-    out.update(
-        {
-            "episodes": len(episodes),
-            "commanded_deg": float(sum(abs(e["commanded_deg"]) for e in episodes)),
-            "required_deg": float(sum(abs(e["required_deg"]) for e in episodes)),
-            "over_steer_deg": float(over_deg.sum()),
-            "over_steer_mean_deg": float(over_deg.mean()) if len(over_deg) else 0.0,
-            "over_steer_max_deg": float(over_deg.max()) if len(over_deg) else 0.0,
-            "under_steer_deg": float(sum(e["under_steer_deg"] for e in episodes)),
-            "wrong_way_episodes": int(sum(e["wrong_way"] for e in episodes)),
-            **{
-                f"vs_reference_{k}": v
-                for k, v in command_differences(reference, tested, thr).items()
-                if k in ("rms_diff_nm", "same_side_fraction_braking")
-            },
-        }
-    )
+    out = {
+        "episodes": len(episodes),
+        "commanded_deg": float(sum(abs(e["commanded_deg"]) for e in episodes)),
+        "required_deg": float(sum(abs(e["required_deg"]) for e in episodes)),
+        "over_steer_deg": float(over_deg.sum()),
+        "over_steer_mean_deg": float(over_deg.mean()) if len(over_deg) else 0.0,
+        "over_steer_max_deg": float(over_deg.max()) if len(over_deg) else 0.0,
+        "under_steer_deg": float(sum(e["under_steer_deg"] for e in episodes)),
+        "wrong_way_episodes": int(sum(e["wrong_way"] for e in episodes)),
+        **{
+            f"vs_reference_{k}": v
+            for k, v in command_differences(reference, tested, threshold_nm).items()
+            if k in ("rms_diff_nm", "same_side_fraction_braking")
+        },
+    }
     if episodes and "true_heading_change_deg" in episodes[0]:
         out["true_heading_change_deg"] = float(
             sum(abs(e["true_heading_change_deg"]) for e in episodes)
         )
-    return out, episodes
+    return out
 
 
 def write_episodes_csv(episodes: list[dict[str, float]], path: Path) -> Path:
@@ -791,123 +815,3 @@ def controller_replay_summary(
             "total_nms"
         ]
     return out
-
-
-# -- figures ----------------------------------------------------------------------------
-
-
-def _shade_braking(ax, t: np.ndarray, engaged: np.ndarray, t0: float) -> None:
-    edges = np.diff(np.concatenate([[0], engaged.astype(int), [0]]))
-    for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True):
-        ax.axvspan(t[a] - t0, t[min(b, len(t) - 1)] - t0, color="tab:red", alpha=0.12, lw=0)
-
-
-def plot_drag(
-    path: Path,
-    phantom: PhantomSeries | None,
-    frames: dict[str, np.ndarray],
-    steer: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
-    commands: Sequence[BrakeCommand],
-    calibration: WalkerCalibration,
-    config: DragConfig,
-) -> Path:
-    """Phantom area over time, per-frame drag, and steering commanded vs required."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    present = {"phantom": phantom is not None, "frames": bool(frames), "steer": steer is not None}
-    panels = [name for name, ok in present.items() if ok]
-    fig, axes = plt.subplots(
-        len(panels), 1, figsize=(8, 2.4 * len(panels)), sharex=True, squeeze=False
-    )
-    axes = axes[:, 0]
-    ct = np.array([c.t for c in commands])
-    level = np.array([max(c.left_nm, c.right_nm) for c in commands])
-    engaged = level - calibration.brake.torque_off_nm > config.brake_threshold_nm
-    starts = []
-    if phantom is not None and phantom.t:
-        starts.append(phantom.t[0])
-    if frames:
-        starts.append(float(frames["t"][0]))
-    if len(ct):
-        starts.append(float(ct[0]))
-    t0 = min(starts, default=0.0)
-    for ax, panel in zip(axes, panels, strict=True):
-        if len(ct):
-            _shade_braking(ax, ct, engaged, t0)
-        if panel == "phantom":
-            ax.plot(
-                np.array(phantom.t) - t0, phantom.phantom, color="tab:blue", label="estimated map"
-            )
-            if np.isfinite(phantom.reference).any():
-                ax.plot(
-                    np.array(phantom.t) - t0,
-                    phantom.reference,
-                    color="k",
-                    lw=0.8,
-                    label="map at true poses",
-                )
-            ax.set_ylabel("phantom area [m²]")
-            ax.legend(fontsize=8, loc="upper left")
-            ax.set_title("drag over the trial (red: a brake engaged)", fontsize=9)
-        elif panel == "frames":
-            tt = frames["t"] - t0
-            ax.plot(tt, frames["mean_m"], color="tab:blue", lw=0.8, label="absolute")
-            ax.plot(
-                tt,
-                frames["local_mean_m"],
-                color="tab:orange",
-                lw=0.8,
-                label=f"added in {config.local_window_s:g} s",
-            )
-            bt = frames["braked_turn"]
-            ax.plot(
-                tt[bt], frames["local_mean_m"][bt], ".", color="tab:red", ms=3, label="braked turn"
-            )
-            ax.set_ylabel("obstacle drag [m]")
-            ax.legend(fontsize=8, loc="upper left")
-        else:
-            st, tested, ref = steer
-            u_t = np.degrees(brake_yaw_rate(tested[:, 0], tested[:, 1], calibration, config))
-            u_r = np.degrees(brake_yaw_rate(ref[:, 0], ref[:, 1], calibration, config))
-            ax.step(st - t0, u_t, where="post", color="tab:blue", lw=0.8, label="commanded")
-            ax.step(
-                st - t0, u_r, where="post", color="k", lw=0.8, label="required (true pose, map)"
-            )
-            ax.set_ylabel("brake yaw rate [°/s]")
-            ax.legend(fontsize=8, loc="upper left")
-    axes[-1].set_xlabel("time [s]")
-    fig.savefig(path, dpi=130, bbox_inches="tight")
-    plt.close(fig)
-    return path
-
-
-def plot_controller_replay(path: Path, recomputer: CommandRecomputer) -> Path:
-    """Logged vs recomputed brake torque per wheel."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    t, logged, recomputed = recomputer.arrays()
-    t0 = t[0] if len(t) else 0.0
-    fig, axes = plt.subplots(2, 1, figsize=(8, 4.2), sharex=True)
-    for k, (ax, wheel) in enumerate(zip(axes, ("left", "right"), strict=True)):
-        ax.step(t - t0, logged[:, k], where="post", color="k", lw=1.4, alpha=0.6, label="logged")
-        ax.step(
-            t - t0,
-            recomputed[:, k],
-            where="post",
-            color="tab:orange",
-            lw=0.8,
-            label=f"recomputed ({recomputer.name})",
-        )
-        ax.set_ylabel(f"{wheel} torque [N·m]")
-        ax.legend(fontsize=8, loc="upper left")
-    axes[0].set_title("brake commands: logged vs recomputed on the replay", fontsize=9)
-    axes[-1].set_xlabel("time [s]")
-    fig.savefig(path, dpi=130, bbox_inches="tight")
-    plt.close(fig)
-    return path

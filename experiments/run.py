@@ -370,7 +370,9 @@ def _drag_metrics(
         }
         files["controller_replay_csv"] = recomputer.write_csv(out / "controller_replay.csv")
         if figures:
-            files["controller_replay_png"] = drag.plot_controller_replay(
+            from experiments.drag_figures import plot_controller_replay
+
+            files["controller_replay_png"] = plot_controller_replay(
                 out / "controller_replay.png", recomputer
             )
     steer = None
@@ -387,7 +389,9 @@ def _drag_metrics(
         if summary["ticks"]:
             steer = (t, tested, required)
     if figures and (phantom is not None or frame_series or steer is not None):
-        files["drag_png"] = drag.plot_drag(
+        from experiments.drag_figures import plot_drag
+
+        files["drag_png"] = plot_drag(
             out / "drag.png", phantom, frame_series, steer, rec.commands, cal, cfg
         )
     return files
