@@ -9,13 +9,13 @@ import json
 import math
 import sqlite3
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from experiments.run import ReplayResult, replay_log
+from experiments.run import MAP_BAND_M, ReplayResult, replay_log
 from experiments.studies.settings import build_config, source_settings
 from hardware.datasets import Dataset
 from hardware.log import TrialLog, read_log
@@ -135,7 +135,7 @@ def compare(
         "seed INTEGER, metrics TEXT, config TEXT, " + ", ".join(f"{c} REAL" for c in NUMERIC) + ")"
     )
     rows: list[dict[str, Any]] = []
-    trajectories: dict[str, dict[str, np.ndarray]] = {}
+    figures: dict[str, _LogPaths] = {}
     for source in logs:
         trial = source if isinstance(source, TrialLog | Dataset) else read_log(source)
         name = source_name(source)
@@ -177,12 +177,7 @@ def compare(
                 )
                 db.commit()
                 if seed in (None, 0):
-                    traj = res.pipeline.localizer.trajectory() if res.pipeline else None
-                    if traj is not None:
-                        trajectories.setdefault(name, {})[loc] = traj.poses[:, :2]
-                        gt = res.pipeline.recorded.groundtruth_trajectory()
-                        if gt is not None:
-                            trajectories[name]["ground truth"] = gt.poses[:, :2]
+                    figures.setdefault(name, _LogPaths()).keep(loc, res)
     db.close()
     files = {"results_db": out / "results.db", "results_csv": out / "results.csv"}
     with files["results_csv"].open("w", newline="") as f:
@@ -190,7 +185,7 @@ def compare(
         w.writeheader()
         w.writerows(rows)
     summary = summarise(rows)
-    files.update(_report(out, summary, trajectories))
+    files.update(_report(out, summary, figures))
     return CompareResult(rows, summary, files)
 
 
@@ -200,11 +195,28 @@ def _fmt(v: tuple[float, float] | None, runs: int) -> str:
     return f"{v[0]:.3f}" if runs == 1 else f"{v[0]:.3f} ± {v[1]:.3f}"
 
 
-def _report(out: Path, summary, trajectories) -> dict[str, Path]:
-    import matplotlib
+@dataclass
+class _LogPaths:
+    """What a log's trajectory figure draws: each localizer's path (seed 0 of a
+    stochastic one), the true path and the true obstacle outlines, when known."""
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    paths: dict[str, np.ndarray] = field(default_factory=dict)
+    truth: np.ndarray | None = None
+    outlines: list[np.ndarray] = field(default_factory=list)
+
+    def keep(self, localizer: str, res: ReplayResult) -> None:
+        if res.pipeline is None:
+            return
+        self.paths[localizer] = res.pipeline.localizer.trajectory().poses[:, :2]
+        gt = res.pipeline.recorded.groundtruth_trajectory()
+        if gt is not None:
+            self.truth = gt.poses[:, :2]
+        if res.world is not None and not self.outlines:
+            self.outlines = [p for _, p in res.world.footprint_polygons(*MAP_BAND_M)]
+
+
+def _report(out: Path, summary, figures: dict[str, _LogPaths]) -> dict[str, Path]:
+    from experiments.report import paths_figure, save
 
     files: dict[str, Path] = {}
     lines = [
@@ -220,17 +232,9 @@ def _report(out: Path, summary, trajectories) -> dict[str, Path]:
             _fmt(s[k], s["runs"]) for k in NUMERIC
         ]
         lines.append("| " + " | ".join(cells) + " |")
-    for name, trajs in trajectories.items():
-        fig, ax = plt.subplots(figsize=(6, 5))
-        for label, xy in trajs.items():
-            style = {"color": "k", "lw": 1.5} if label == "ground truth" else {"lw": 0.9}
-            ax.plot(xy[:, 0], xy[:, 1], label=label, **style)
-        ax.set_aspect("equal")
-        ax.legend(fontsize=7)
-        ax.set_title(name, fontsize=9)
-        path = out / f"{name}_trajectories.png"
-        fig.savefig(path, dpi=120, bbox_inches="tight")
-        plt.close(fig)
+    for name, drawn in figures.items():
+        fig = paths_figure(name, drawn.paths, drawn.truth, drawn.outlines)
+        path = save(fig, out / f"{name}_trajectories.png")
         files[f"{name}_figure"] = path
         lines += ["", f"## {name}", "", f"![trajectories]({path.name})"]
     files["report"] = out / "report.md"

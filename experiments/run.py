@@ -29,7 +29,7 @@ from hardware.log import LogWriter, TrialLog, read_log
 from hardware.registry import UnknownNameError
 from hardware.sim.simulator import SimConfig, Simulator
 from hardware.sim.world import World, load_world
-from mapping.export import save_map_server, save_png
+from mapping.export import save_map_server
 from mapping.mapper import MapperConfig
 from slam import landmarks
 from slam.base import LOCALIZERS, create
@@ -289,18 +289,18 @@ def replay_log(
         )
     )
 
-    files["map_png"] = save_png(
-        pipeline.mapper.grid,
-        out / "map.png",
-        outlines=outlines,
-        trajectory=est.poses[:, :2],
-        scale=4,
+    from experiments.report import write_map_png
+
+    files["map_png"] = write_map_png(
+        out / "map.png", pipeline.mapper.grid, outlines, est, gt, localizer=localizer, log=log_path
     )
     files["map_yaml"], files["map_pgm"] = save_map_server(pipeline.mapper.grid, out / "map.yaml")
     if figures:
         from experiments.report import write_figures
 
-        files.update(write_figures(out, pipeline, est, gt, outlines))
+        files.update(
+            write_figures(out, pipeline, est, gt, outlines, localizer=localizer, log=log_path)
+        )
     files["metrics"] = out / "metrics.json"
     files["metrics"].write_text(json.dumps(metrics, indent=2) + "\n")
     files["config"] = out / "config.json"

@@ -1,7 +1,9 @@
-"""Map files: PNG pictures and ROS map_server PGM + YAML (and reading the latter back).
+"""Map files: ROS map_server PGM + YAML (and reading them back), pixel-exact PNG pictures.
 
 Both show a grid's trinary map (`GridExtent.trinary()`), by default cropped to the
-bounding box of the known cells (a growing grid keeps unknown margins). Images have row 0
+bounding box of the known cells (a growing grid keeps unknown margins): `map_raster`,
+which the map figure (`experiments.report.map_figure`, a replay's `map.png`, with metric
+axes and a legend) draws too, so figure and files show the same cells. Images have row 0
 at the top, i.e. the highest y; the map_server YAML `origin` is the world pose of the
 lower-left pixel. An empty grid exports as one unknown pixel.
 """
@@ -27,23 +29,38 @@ PNG_OCCUPIED, PNG_FREE, PNG_UNKNOWN = 0, 255, 160
 
 
 @dataclass(frozen=True, eq=False)
-class _Raster:
-    trinary: np.ndarray  # int8 (ny, nx), row 0 = lowest y
-    origin: tuple[float, float]  # world (x, y) of the lower-left corner of cell [0, 0]
+class MapRaster:
+    """What the map files show: trinary int8 (ny, nx) with row 0 = lowest y (1 occupied,
+    0 free, −1 unknown), the world (x, y) of the lower-left corner of cell [0, 0] [m] and
+    the cell side [m]."""
+
+    trinary: np.ndarray
+    origin: tuple[float, float]
+    resolution: float
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) in world metres."""
+        ny, nx = self.trinary.shape
+        x0, y0 = self.origin
+        return x0, x0 + nx * self.resolution, y0, y0 + ny * self.resolution
 
 
-def _raster(grid: GridExtent, crop: bool) -> _Raster:
+def map_raster(grid: GridExtent, crop: bool = True) -> MapRaster:
+    """The grid's trinary map, cropped to the bounding box of its known cells (crop=True;
+    all of a grid without known cells); an empty grid gives one unknown cell."""
     tri = grid.trinary()
+    res = grid.resolution
     if tri.size == 0:  # nothing integrated yet: one unknown pixel (images cannot be empty)
-        return _Raster(np.full((1, 1), -1, dtype=np.int8), grid.origin)
+        return MapRaster(np.full((1, 1), -1, dtype=np.int8), grid.origin, res)
     known = tri >= 0
     if not crop or not known.any():
-        return _Raster(tri, grid.origin)
+        return MapRaster(tri, grid.origin, res)
     rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
     r0, c0 = int(rows[0]), int(cols[0])
     i0, j0 = grid.lattice_offset
-    origin = ((i0 + c0) * grid.resolution, (j0 + r0) * grid.resolution)
-    return _Raster(tri[r0 : rows[-1] + 1, c0 : cols[-1] + 1], origin)
+    origin = ((i0 + c0) * res, (j0 + r0) * res)
+    return MapRaster(tri[r0 : rows[-1] + 1, c0 : cols[-1] + 1], origin, res)
 
 
 def _image(trinary: np.ndarray, occupied: int, free: int, unknown: int) -> np.ndarray:
@@ -65,14 +82,15 @@ def save_png(
     outline_bgr: tuple[int, int, int] = (0, 0, 230),
     trajectory_bgr: tuple[int, int, int] = (220, 120, 0),
 ) -> Path:
-    """Write the map as a PNG of (ny·scale) × (nx·scale) pixels (after cropping).
+    """Write the map as a PNG of (ny·scale) × (nx·scale) pixels (after cropping): scale
+    pixels per cell, no axes or legend (for a figure: `experiments.report.map_figure`).
 
     outlines: true obstacle outlines, each an N×2 polygon in world metres (drawn closed).
     trajectory: N×2 world points drawn as a polyline. Colours are BGR.
     """
     if scale < 1:
         raise ValueError(f"scale must be >= 1, got {scale}")
-    raster = _raster(grid, crop)
+    raster = map_raster(grid, crop)
     grey = _image(raster.trinary, PNG_OCCUPIED, PNG_FREE, PNG_UNKNOWN)
     img = cv2.cvtColor(np.kron(grey, np.ones((scale, scale), dtype=np.uint8)), cv2.COLOR_GRAY2BGR)
     xmin = raster.origin[0]
@@ -106,7 +124,7 @@ def save_map_server(grid: GridExtent, path: str | Path, *, crop: bool = True) ->
     """
     yaml_path = Path(path).with_suffix(".yaml")
     pgm_path = yaml_path.with_suffix(".pgm")
-    raster = _raster(grid, crop)
+    raster = map_raster(grid, crop)
     img = _image(raster.trinary, PGM_OCCUPIED, PGM_FREE, PGM_UNKNOWN)
     header = f"P5\n# walker-slam occupancy map\n{img.shape[1]} {img.shape[0]}\n255\n"
     pgm_path.write_bytes(header.encode("ascii") + img.tobytes())
