@@ -1,5 +1,7 @@
 """`python -m experiments` is the `walkerslam` command."""
 
-from experiments.cli import app
+import sys
 
-app(prog_name="walkerslam")
+from experiments.cli import main
+
+sys.exit(main())

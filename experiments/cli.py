@@ -3,18 +3,24 @@
 
 from __future__ import annotations
 
-import functools
 import json
-import warnings
-from collections.abc import Callable
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
+
+from experiments import live_commands, study_commands
+from experiments.cli_common import (
+    console,
+    err_console,
+    friendly,
+    parse_size,
+    print_error,
+    progress_bar,
+)
+from hardware.errors import ConfigError
 
 app = typer.Typer(
     help="walker-slam: localization and mapping under brake-induced wheel slip.",
@@ -23,73 +29,6 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     rich_markup_mode="markdown",
 )
-console = Console()
-err_console = Console(stderr=True)
-
-
-def _user_errors() -> tuple[type[BaseException], ...]:
-    from experiments.live_view import ViewError
-    from hardware.live import DeviceFault
-    from hardware.log import LogError
-    from hardware.registry import UnknownNameError
-
-    return (LogError, UnknownNameError, FileNotFoundError, ValueError, DeviceFault, ViewError)
-
-
-def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """Warnings (e.g. a recovered log) as one line, without Python's source context."""
-    text = str(message).splitlines()[0]
-    err_console.print(f"[bold yellow]warning:[/] {text}", highlight=False, soft_wrap=True)
-
-
-def friendly(fn: Callable) -> Callable:
-    """Turn bad input into `error: …` on one line and exit code 2, never a traceback."""
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        try:
-            with warnings.catch_warnings():
-                warnings.showwarning = _show_warning
-                return fn(*args, **kwargs)
-        except _user_errors() as exc:
-            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            err_console.print(f"[bold red]error:[/] {msg}", highlight=False, soft_wrap=True)
-            raise typer.Exit(2) from None
-
-    return wrapper
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """'WxH' → (W, H), within the Kinect's 640×480."""
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"image size must look like 160x120, got '{text}'") from None
-    if not (8 <= w <= 640 and 6 <= h <= 480):
-        raise ValueError(f"image size {w}x{h} is outside 8x6 .. 640x480")
-    return w, h
-
-
-@contextmanager
-def progress_bar(label: str, total: float | None):
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed:>6.1f} s"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=err_console,
-        transient=True,
-    ) as bar:
-        task = bar.add_task(label, total=total)
-        last = [0.0]
-
-        def update(t: float) -> None:
-            if t - last[0] >= 0.5:
-                last[0] = t
-                bar.update(task, completed=t)
-
-        yield update
 
 
 def _print_metrics(metrics: dict, files: dict[str, Path]) -> None:
@@ -148,11 +87,22 @@ def simulate(
     """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log."""
     from dataclasses import replace
 
+    from experiments.config import checked
     from experiments.run import simulate_trial
     from hardware.sim.simulator import SimConfig
 
     width, height = parse_size(depth_size)
-    sim_config = replace(SimConfig(), depth_width=width, depth_height=height)
+    sim_config = checked(
+        lambda: replace(
+            SimConfig(),
+            depth_width=width,
+            depth_height=height,
+            surface=surface,
+            seed=seed,
+            duration_s=duration,
+        ),
+        "simulate",
+    )
 
     with progress_bar(f"simulating {course}", duration) as update:
         res = simulate_trial(
@@ -219,7 +169,7 @@ def _dataset_options(robot, relations, time_offset, extra: list[str] | None = No
     for text in extra or []:
         name, eq, value = text.partition("=")
         if not eq or not name.strip():
-            raise ValueError(f"--dataset-option takes NAME=VALUE, got '{text}'")
+            raise ConfigError(f"--dataset-option takes NAME=VALUE, got '{text}'")
         out[name.strip()] = value.strip()
     return out
 
@@ -304,7 +254,7 @@ def replay(
     if controller is not None:
         CONTROLLERS.spec(controller)  # an unknown name: one line, before any work
     if map_model not in [m.value for m in MapModel]:
-        raise ValueError(f"unknown map model '{map_model}'; valid: log-odds, view-count")
+        raise ConfigError(f"unknown map model '{map_model}'; valid: log-odds, view-count")
     mapper_config = MapperConfig(grid=GridConfig(resolution_m=resolution, model=map_model))
     if format is not None:
         from hardware.datasets import open_dataset
@@ -331,7 +281,7 @@ def replay(
         from experiments.live_view import FoxgloveView
 
         if not speed > 0:
-            raise ValueError(f"--speed must be > 0, got {speed}")
+            raise ConfigError(f"--speed must be > 0, got {speed}")
         view = FoxgloveView(trial.calibration, port=foxglove_port)
         console.print(f"live view: {view.url} (Foxglove: open a WebSocket connection)")
     try:
@@ -497,7 +447,7 @@ def compare(
             try:
                 robots = [int(r) for r in robot.split(",") if r.strip()]
             except ValueError:
-                raise ValueError(
+                raise ConfigError(
                     f"--robot must be numbers separated by commas, got {robot!r}"
                 ) from None
         for log in logs:
@@ -506,14 +456,14 @@ def compare(
                 sources.append(open_dataset(format, log, **opts))
     else:
         if robot is not None or relations is not None or time_offset is not None or dataset_option:
-            raise ValueError(
+            raise ConfigError(
                 "--robot, --relations, --time-offset and --dataset-option need --format"
             )
         for log in logs:
             read_log(log)  # fail fast on a bad file, before any run
         sources = list(logs)
     if seeds < 1:
-        raise ValueError(f"--seeds must be >= 1, got {seeds}")
+        raise ConfigError(f"--seeds must be >= 1, got {seeds}")
     with Progress(
         TextColumn("{task.description}"),
         BarColumn(),
@@ -599,15 +549,42 @@ def slip_push(
 
 
 @app.command(name="list")
-def list_names() -> None:
-    """List built-in courses, localizers and controllers."""
+@friendly
+def list_names(
+    name: Annotated[
+        str | None,
+        typer.Argument(help="a localizer, controller or dataset format: its settings"),
+    ] = None,
+) -> None:
+    """List built-in courses, localizers, controllers and dataset formats; with a NAME,
+    its settings (what `--set NAME.FIELD=VALUE` takes) with their defaults."""
+    from rich.text import Text
+
     from control.base import CONTROLLERS
+    from experiments.config import describe
+    from hardware.datasets import FORMATS
+    from hardware.errors import UnknownNameError
     from hardware.sim.world import available_courses
     from slam.base import LOCALIZERS
 
-    console.print("courses:     " + ", ".join(available_courses()))
-    console.print("localizers:  " + ", ".join(LOCALIZERS.names()))
-    console.print("controllers: " + ", ".join(CONTROLLERS.names()))
+    registries = (LOCALIZERS, CONTROLLERS, FORMATS)
+    if name is None:
+        console.print("courses:         " + ", ".join(available_courses()), highlight=False)
+        for reg in registries:
+            console.print(f"{reg.kind + 's:':16s} " + ", ".join(reg.names()), highlight=False)
+        console.print("settings of one: walkerslam list NAME", highlight=False)
+        return
+    for reg in registries:
+        if name in reg.names():
+            spec = reg.spec(name)
+            console.print(f"{reg.kind} {name}: {spec.summary}", highlight=False, soft_wrap=True)
+            table = Table("setting", "default", "type", box=None)
+            for path, default, typ in describe(spec.config_type):
+                table.add_row(*(Text(v) for v in (f"{name}.{path}", default, typ)))
+            console.print(table)
+            return
+    valid = sorted(n for reg in registries for n in reg.names())
+    raise UnknownNameError("localizer, controller or dataset format", name, valid)
 
 
 @app.command()
@@ -631,5 +608,22 @@ def info(log: Annotated[Path, typer.Argument(help="trial log (.mcap)")]) -> None
         console.print(json.dumps({k: v for k, v in cfg.items() if not isinstance(v, dict)}))
 
 
-__import__("experiments.study_commands").study_commands.register(app)  # course-study, corner-study
-__import__("experiments.live_commands").live_commands.register(app)  # live, board
+study_commands.register(app)  # course-study, corner-study
+live_commands.register(app)  # live, board, calibrate-camera
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The `walkerslam` console script: the commands under the CLI's error rule, and
+    typer's own usage errors (a bad option value, a missing argument) on one line too."""
+    try:
+        code = app(args=argv, prog_name="walkerslam", standalone_mode=False)
+    except typer.Abort:
+        print_error("aborted")
+        return 130
+    except typer.TyperException as e:  # typer's usage errors (click's, vendored)
+        ctx = getattr(e, "ctx", None)
+        where = ctx.command_path if ctx is not None else "walkerslam"
+        text = e.format_message() if hasattr(e, "format_message") else str(e)
+        print_error(f"{where}: {text} (see {where} --help)")
+        return 2
+    return code if isinstance(code, int) else 0

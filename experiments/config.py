@@ -221,3 +221,41 @@ def configure(
             raise
         raise ConfigError(f"{name}: {e}") from None
     return Configured(cfg, applied, skipped, over)
+
+
+def checked(build, what: str):
+    """`build()` (a config's construction from a user's values), its ValueError or
+    TypeError as a ConfigError naming `what`."""
+    try:
+        return build()
+    except (TypeError, ValueError) as e:
+        if isinstance(e, ConfigError):
+            raise
+        raise ConfigError(f"{what}: {e}") from None
+
+
+def describe(config_type: type | None, prefix: str = "") -> list[tuple[str, str, str]]:
+    """(field path, default, type) of every setting of a config, nested groups
+    flattened (what `walkerslam list NAME` shows)."""
+    if config_type is None:
+        return []
+    out = []
+    defaults = config_type()
+    for name, typ in _field_types(config_type).items():
+        value = getattr(defaults, name)
+        if dataclasses.is_dataclass(typ):
+            out += [(f"{prefix}{name}.{p}", d, t) for p, d, t in describe(typ)]
+            continue
+        shown = value.value if isinstance(value, enum.Enum) else value
+        out.append((f"{prefix}{name}", repr(shown), _type_name(typ)))
+    return out
+
+
+def _type_name(typ: Any) -> str:
+    if typing.get_origin(typ) is not None:
+        return str(typ).replace("typing.", "")
+    if isinstance(typ, type):
+        if issubclass(typ, enum.Enum):
+            return " | ".join(repr(m.value) for m in typ)
+        return typ.__name__
+    return str(typ).replace("typing.", "")

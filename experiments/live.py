@@ -44,6 +44,7 @@ from experiments.studies.settings import build_config, source_settings
 from hardware.arduino import ArduinoBoard, BoardConfig, BoardStats
 from hardware.calibration import WalkerCalibration, load_calibration
 from hardware.clock import HostClock
+from hardware.errors import ConfigError
 from hardware.live import LiveSources
 from hardware.log import LogWriter
 from hardware.messages import BrakeCommand, DepthFrame, EncoderTicks, LaserScan, Message
@@ -55,7 +56,7 @@ from slam.base import LOCALIZERS, create
 LIVE_LOOP = LoopConfig(trigger="frame", latency_s=0.0, rebuild_in_background=True)
 
 
-class LiveError(ValueError):
+class LiveError(ConfigError):
     """A live run that cannot start (a device missing, a bad option); one line."""
 
 

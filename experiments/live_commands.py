@@ -13,6 +13,8 @@ from typing import Annotated
 
 import typer
 
+from hardware.errors import ConfigError
+
 
 @contextmanager
 def _stop_on_signals(stop):
@@ -85,7 +87,7 @@ def _parse_pair(text: str, what: str) -> tuple[float, float]:
     try:
         a, b = (float(v) for v in text.split(","))
     except ValueError:
-        raise ValueError(f"{what} takes two numbers L,R, got '{text}'") from None
+        raise ConfigError(f"{what} takes two numbers L,R, got '{text}'") from None
     return a, b
 
 
@@ -99,10 +101,10 @@ def image_files(paths: list[Path]) -> list[Path]:
         if p.is_dir():
             found = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
             if not found:
-                raise ValueError(f"{p}: no images in the folder ({', '.join(IMAGE_SUFFIXES)})")
+                raise ConfigError(f"{p}: no images in the folder ({', '.join(IMAGE_SUFFIXES)})")
             out.extend(found)
         elif not p.exists():
-            raise FileNotFoundError(f"{p}: no such image")
+            raise ConfigError(f"{p}: no such image")
         else:
             out.append(p)
     return out
@@ -113,7 +115,7 @@ def register(app: typer.Typer) -> None:
     from rich.live import Live
     from rich.text import Text
 
-    from experiments.cli import console, err_console, friendly, parse_size
+    from experiments.cli_common import console, err_console, friendly, parse_size
 
     @app.command()
     @friendly
@@ -200,7 +202,7 @@ def register(app: typer.Typer) -> None:
         LOCALIZERS.spec(localizer)
         CONTROLLERS.spec(controller)
         if localizer == controller:
-            raise ValueError("the localizer and the controller need different names")
+            raise ConfigError("the localizer and the controller need different names")
         sets = parse_sets(
             set_ or [], {localizer: LOCALIZERS, controller: CONTROLLERS}, [localizer, controller]
         )
@@ -341,7 +343,7 @@ def register(app: typer.Typer) -> None:
         try:
             cols, rows = (int(v) for v in board.lower().split("x"))
         except ValueError:
-            raise ValueError(f"--board takes COLSxROWS inner corners, got '{board}'") from None
+            raise ConfigError(f"--board takes COLSxROWS inner corners, got '{board}'") from None
         files = image_files(images)
         res = calibrate_camera(
             [str(f) for f in files],

@@ -148,6 +148,7 @@ from foxglove.messages import (
 
 from experiments.pipeline import Pipeline
 from hardware.calibration import WalkerCalibration
+from hardware.errors import ConfigError, DeviceError
 from hardware.log import TOPICS, encode_parts
 from hardware.messages import (
     BrakeCommand,
@@ -216,11 +217,11 @@ class ViewConfig:
     def __post_init__(self) -> None:
         for name in ("pose_hz", "trajectory_hz", "grid_hz", "depth_hz"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+                raise ConfigError(f"{name} must be > 0, got {getattr(self, name)!r}")
         if not 0 < self.busy_fraction <= 1:
-            raise ValueError(f"busy_fraction must be in (0, 1], got {self.busy_fraction!r}")
+            raise ConfigError(f"busy_fraction must be in (0, 1], got {self.busy_fraction!r}")
         if self.trajectory_max_poses < 2 or self.grid_max_cells < 1:
-            raise ValueError("trajectory_max_poses must be >= 2 and grid_max_cells >= 1")
+            raise ConfigError("trajectory_max_poses must be >= 2 and grid_max_cells >= 1")
 
 
 class _Gate:
@@ -383,7 +384,7 @@ _ESTIMATE_SCHEMA = {
 }
 
 
-class ViewError(RuntimeError):
+class ViewError(DeviceError):
     """The view's server cannot start (e.g. the port is taken); str() is one line."""
 
 
@@ -605,7 +606,7 @@ class FoxgloveView:
             return False
         try:
             if not (math.isfinite(msg.t) and msg.t >= 0):
-                raise ValueError("message time must be finite and >= 0")
+                raise ConfigError("message time must be finite and >= 0")
             main = topic or TOPICS[type(msg)]
             parts = encode_parts(msg, main, _ns(msg.t))
         except (AttributeError, TypeError, ValueError, KeyError):
@@ -893,7 +894,7 @@ class RealtimePacer:
         sleep: Callable[[float], None] = time.sleep,
     ) -> None:
         if not speed > 0:
-            raise ValueError(f"speed must be > 0, got {speed!r}")
+            raise ConfigError(f"speed must be > 0, got {speed!r}")
         self.speed, self.max_lag_s = float(speed), float(max_lag_s)
         self.clock, self.sleep = clock, sleep
         self._anchor: tuple[float, float] | None = None  # (wall, run time)

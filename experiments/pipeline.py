@@ -19,6 +19,7 @@ import numpy as np
 from control.base import ControlInput, Controller
 from control.safety import SafeController, SafetyConfig
 from hardware.calibration import WalkerCalibration
+from hardware.errors import ConfigError
 from hardware.messages import (
     BrakeCommand,
     Collision,
@@ -220,9 +221,9 @@ class LoopConfig:
 
     def __post_init__(self) -> None:
         if self.trigger not in ("timer", "frame"):
-            raise ValueError(f"trigger must be 'timer' or 'frame', got {self.trigger!r}")
+            raise ConfigError(f"trigger must be 'timer' or 'frame', got {self.trigger!r}")
         if not self.rate_hz > 0 or self.latency_s < 0:
-            raise ValueError("LoopConfig needs rate_hz > 0 and latency_s >= 0")
+            raise ConfigError("LoopConfig needs rate_hz > 0 and latency_s >= 0")
 
 
 class FeedOrder:

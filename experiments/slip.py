@@ -11,6 +11,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from hardware.errors import ConfigError
 from hardware.geometry import between
 from hardware.messages import BrakeCommand, GroundTruthPose
 from hardware.sim.simulator import SimConfig, Simulator
@@ -61,7 +62,7 @@ def straight_push(
 ) -> PushResult:
     """Push the walker `length_m` straight ahead with `brakes` held at `level` of full PWM."""
     if brakes not in BRAKE_SETTINGS:
-        raise ValueError(f"unknown brake setting '{brakes}'; valid: {', '.join(BRAKE_SETTINGS)}")
+        raise ConfigError(f"unknown brake setting '{brakes}'; valid: {', '.join(BRAKE_SETTINGS)}")
     route = np.column_stack([np.linspace(0.0, length_m + 0.5, 30), np.zeros(30)])
     world = World("straight", (-1.0, length_m + 2.0, -3.0, 3.0), (), (), route, (0.0, 0.0, 0.0))
     cfg = SimConfig(surface=surface, seed=seed, duration_s=4 * length_m / STRAIGHT_PUSHER.speed_mps)

@@ -10,6 +10,8 @@ from typing import Annotated
 
 import typer
 
+from hardware.errors import ConfigError
+
 EngineOpt = Annotated[str, typer.Option(help="local (a process per core) or ray (a Ray cluster)")]
 AddressOpt = Annotated[
     str | None,
@@ -49,7 +51,7 @@ def register(app: typer.Typer) -> None:
     )
     from rich.table import Table
 
-    from experiments.cli import console, err_console, friendly
+    from experiments.cli_common import console, err_console, friendly
 
     @contextmanager
     def runs_bar(label: str):
@@ -196,7 +198,7 @@ def register(app: typer.Typer) -> None:
             try:
                 CONTROLLERS.spec(n)
             except ValueError as e:
-                raise ValueError(f"sweep of {n}: {e} (choose sweeps with --sweep)") from None
+                raise ConfigError(f"sweep of {n}: {e} (choose sweeps with --sweep)") from None
         study = CornerStudy(
             sweeps=sweeps,
             runs=runs,

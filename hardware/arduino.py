@@ -59,10 +59,11 @@ import serial
 from hardware import board_protocol as bp
 from hardware.calibration import WalkerCalibration
 from hardware.clock import ClockMap, HostClock
+from hardware.errors import DeviceError
 from hardware.messages import BrakeCommand, DeviceEvent, EncoderTicks, Message
 
 
-class BoardError(ValueError):
+class BoardError(DeviceError):
     """The board cannot be used (port missing, no handshake, wrong firmware); one line."""
 
 

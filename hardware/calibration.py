@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from hardware.errors import ConfigError
 from hardware.frames import BODY_R_OPTICAL, make_transform, rot_rpy
 from hardware.messages import CameraIntrinsics
 
@@ -126,6 +127,6 @@ def load_calibration(path: str | os.PathLike[str]) -> WalkerCalibration:
     try:
         return WalkerCalibration.from_dict(json.loads(p.read_text()))
     except FileNotFoundError:
-        raise ValueError(f"{p}: no such calibration file") from None
+        raise ConfigError(f"{p}: no such calibration file") from None
     except (OSError, TypeError, ValueError) as e:
-        raise ValueError(f"{p}: not a walker calibration: {e}") from None
+        raise ConfigError(f"{p}: not a walker calibration: {e}") from None

@@ -45,6 +45,7 @@ import numpy as np
 import yaml
 
 from hardware.calibration import WalkerCalibration
+from hardware.errors import ConfigError
 from hardware.messages import CameraIntrinsics
 
 #: Tag families pupil-apriltags can detect.
@@ -71,7 +72,7 @@ _REQUIRED_KEYS = (
 )
 
 
-class CameraCalibrationError(ValueError):
+class CameraCalibrationError(ConfigError):
     """A camera calibration file or a checkerboard calibration that cannot be used (one
     line: the file and what is wrong)."""
 

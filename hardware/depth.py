@@ -132,6 +132,7 @@ from hardware import fakenect as fk
 from hardware import kinect_worker as wire
 from hardware.calibration import WalkerCalibration
 from hardware.clock import ClockMap, HostClock
+from hardware.errors import DeviceError
 from hardware.messages import CameraIntrinsics, DepthFrame
 from hardware.source import Source
 
@@ -148,10 +149,6 @@ KINECT_RAW_TO_MM = "z_mm = 1000 / (-0.0030711016 raw + 3.3309495161)"
 
 STAMP_MODES = ("device", "arrival")
 _PACKAGE_ROOT = Path(__file__).resolve().parents[1]
-
-
-class DeviceError(ValueError):
-    """A depth camera (or what it needs) is missing or unusable; the message is one line."""
 
 
 # --------------------------------------------------------------------------- conversions

@@ -61,6 +61,8 @@ from pathlib import Path
 
 import numpy as np
 
+from hardware.errors import DeviceError
+
 WIDTH = 640
 HEIGHT = 480
 TICKS_PER_S = 60_000_000  # the Kinect's frame timestamp clock
@@ -75,7 +77,7 @@ PREAMBLE_S = 0.2
 _NAME = re.compile(r"^(?P<type>.)-(?P<time>[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)-(?P<ts>\d+)")
 
 
-class FakenectError(ValueError):
+class FakenectError(DeviceError):
     """A fakenect folder, or what replaying it needs, is missing or malformed (one line)."""
 
 

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hardware.clock import HostClock
+from hardware.errors import DeviceError
 from hardware.messages import DepthFrame, DeviceEvent, LaserScan, Message, TagDetections
 
 DROPPABLE = (DepthFrame, LaserScan, TagDetections)
@@ -42,7 +43,7 @@ CONTINUOUS = (
 )
 
 
-class DeviceFault(ValueError):
+class DeviceFault(DeviceError):
     """A device failed the way devices fail (an OSError, or a driver's one-line error
     such as `hardware.arduino.BoardError`); the cause is the device's exception. Any
     other exception in a device's thread is a bug and is re-raised as it is."""

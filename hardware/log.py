@@ -161,6 +161,7 @@ from mcap.writer import LIBRARY_IDENTIFIER, CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
 from hardware.calibration import WalkerCalibration
+from hardware.errors import LogError
 from hardware.messages import (
     BrakeCommand,
     CameraIntrinsics,
@@ -196,8 +197,8 @@ FORMAT = "walker-slam log v1"
 MAGIC = b"\x89MCAP0\r\n"
 
 
-class LogError(Exception):
-    """A trial log that cannot be read; str() is one line naming the file and the problem."""
+# LogError: hardware.errors.LogError (a WalkerSlamError), raised with one line naming the
+# file and the problem.
 
 
 class LogRecoveryWarning(UserWarning):

@@ -107,6 +107,7 @@ from hardware.camera_calibration import (
     with_tag_camera,
 )
 from hardware.clock import HostClock
+from hardware.errors import DeviceError
 from hardware.frames import make_transform
 from hardware.messages import CameraIntrinsics, TagDetection, TagDetections
 from hardware.sim.tag_camera import tag_object_points
@@ -120,7 +121,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pgm", ".ppm", ".pnm", ".tif
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
 
 
-class TagCameraError(ValueError):
+class TagCameraError(DeviceError):
     """A tag camera that cannot be opened or stopped working (one line)."""
 
 

@@ -39,6 +39,7 @@ from experiments.studies import figures, tables
 from experiments.studies.runner import StudyResult, run_and_store, write_json
 from experiments.studies.settings import build_config, convert, field_type, parse_assignment
 from experiments.studies.trial import RunSpec
+from hardware.errors import ConfigError
 from hardware.registry import UnknownNameError
 from hardware.sim.dynamics import WalkerParams
 from hardware.sim.slip import surface_coefficient
@@ -150,29 +151,29 @@ class CornerStudy:
 
     def validate(self) -> None:
         if not self.sweeps:
-            raise ValueError("no sweeps given")
+            raise ConfigError("no sweeps given")
         names = [s.name for s in self.sweeps]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
-            raise ValueError(f"repeated sweeps: {', '.join(dup)}")
+            raise ConfigError(f"repeated sweeps: {', '.join(dup)}")
         for s in self.sweeps:
             try:
                 CONTROLLERS.spec(s.controller)
             except UnknownNameError as e:
-                raise ValueError(f"sweep {s.name}: {e} (choose sweeps with --sweep)") from None
+                raise ConfigError(f"sweep {s.name}: {e} (choose sweeps with --sweep)") from None
             if not s.values:
-                raise ValueError(f"sweep {s.name} has no values")
+                raise ConfigError(f"sweep {s.name} has no values")
             for v in s.values:
                 build_config(CONTROLLERS, s.controller, self.overrides(s, v))
         unknown = sorted(set(self.settings) - {s.controller for s in self.sweeps})
         if unknown:
-            raise ValueError(f"settings for controllers not swept: {', '.join(unknown)}")
+            raise ConfigError(f"settings for controllers not swept: {', '.join(unknown)}")
         LOCALIZERS.spec(self.localizer)
         surface_coefficient(self.surface)
         if self.runs < 1:
-            raise ValueError(f"runs must be >= 1, got {self.runs}")
+            raise ConfigError(f"runs must be >= 1, got {self.runs}")
         if not self.duration_s > 0:
-            raise ValueError(f"duration must be > 0, got {self.duration_s}")
+            raise ConfigError(f"duration must be > 0, got {self.duration_s}")
         load_world(self.course)
 
     def run_seed(self, run: int) -> int:

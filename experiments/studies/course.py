@@ -30,6 +30,7 @@ from experiments.studies import figures, tables
 from experiments.studies.runner import StudyResult, run_and_store, write_json
 from experiments.studies.settings import build_config
 from experiments.studies.trial import RunSpec
+from hardware.errors import ConfigError
 from hardware.sim.slip import surface_coefficient
 from hardware.sim.user import UserProfile
 from hardware.sim.world import load_world
@@ -91,26 +92,26 @@ class CourseStudy:
         """Fail before any run: unknown names, bad settings, bad numbers."""
         for name, what in ((self.controllers, "controller"), (self.localizers, "localizer")):
             if not name:
-                raise ValueError(f"no {what}s given")
+                raise ConfigError(f"no {what}s given")
         for names in (self.controllers, self.localizers, self.surfaces):
             dup = sorted({n for n in names if names.count(n) > 1})
             if dup:
-                raise ValueError(f"repeated names: {', '.join(dup)}")
+                raise ConfigError(f"repeated names: {', '.join(dup)}")
         for c in self.controllers:
             build_config(CONTROLLERS, c, self.settings.get(c, {}).items())
         for loc in self.localizers:
             build_config(LOCALIZERS, loc, self.settings.get(loc, {}).items())
         unknown = sorted(set(self.settings) - set(self.controllers) - set(self.localizers))
         if unknown:
-            raise ValueError(f"settings for names not in the study: {', '.join(unknown)}")
+            raise ConfigError(f"settings for names not in the study: {', '.join(unknown)}")
         if not self.surfaces:
-            raise ValueError("no surfaces given")
+            raise ConfigError("no surfaces given")
         for s in self.surfaces:
             surface_coefficient(s)
         if self.trials < 1:
-            raise ValueError(f"trials must be >= 1, got {self.trials}")
+            raise ConfigError(f"trials must be >= 1, got {self.trials}")
         if not self.duration_s > 0:
-            raise ValueError(f"duration must be > 0, got {self.duration_s}")
+            raise ConfigError(f"duration must be > 0, got {self.duration_s}")
         load_world(self.course)
 
     def trial_seed(self, trial: int) -> int:

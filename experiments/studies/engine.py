@@ -25,6 +25,8 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any, TypeVar
 
+from hardware.errors import ConfigError
+
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -39,11 +41,11 @@ def check(engine: str, workers: int | None, address: str | None) -> None:
     """ValueError for an unknown engine, workers < 1, an address without Ray or a Ray
     address that does not answer."""
     if engine not in ENGINES:
-        raise ValueError(f"unknown engine '{engine}'; valid: {', '.join(ENGINES)}")
+        raise ConfigError(f"unknown engine '{engine}'; valid: {', '.join(ENGINES)}")
     if workers is not None and workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+        raise ConfigError(f"workers must be >= 1, got {workers}")
     if address is not None and engine != "ray":
-        raise ValueError("--address is for --engine ray")
+        raise ConfigError("--address is for --engine ray")
     if address:
         _reachable(address)
 
@@ -107,14 +109,14 @@ def _reachable(address: str, timeout_s: float = 5.0) -> None:
     try:
         socket.create_connection((host, int(port)), timeout=timeout_s).close()
     except OSError as e:
-        raise ValueError(f"cannot reach the Ray cluster at {address}: {e}") from None
+        raise ConfigError(f"cannot reach the Ray cluster at {address}: {e}") from None
 
 
 def _run_ray(fn, tasks, workers, address, progress) -> list:
     try:
         import ray
     except ImportError:  # pragma: no cover - ray is a dependency
-        raise ValueError("--engine ray needs the 'ray' package (pip install ray)") from None
+        raise ConfigError("--engine ray needs the 'ray' package (pip install ray)") from None
     started = False
     if not ray.is_initialized():
         if address:

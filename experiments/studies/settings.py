@@ -14,6 +14,7 @@ import typing
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+from hardware.errors import ConfigError
 from hardware.registry import Registry
 from hardware.source import PROPOSED_SETTINGS
 
@@ -45,13 +46,13 @@ def convert(value: str, typ: Any, where: str) -> Any:
                 return True
             if low in ("0", "false", "no", "off"):
                 return False
-            raise ValueError
+            raise ValueError  # (the caller turns it into a ConfigError)
         if typ is int:
             return int(text)
         if typ is float:
             return float(text)
     except ValueError:
-        raise ValueError(f"{where}: '{value}' is not a valid {typ.__name__}") from None
+        raise ConfigError(f"{where}: '{value}' is not a valid {typ.__name__}") from None
     if typ is str:
         return text
     # Other annotations (unions, tuples): try a number, else keep the text.
@@ -66,7 +67,7 @@ def split_key(key: str) -> tuple[str, str]:
     its path: 'gtsam.noise.brake_aware' → ('gtsam', 'noise.brake_aware')."""
     name, dot, field = key.strip().partition(".")
     if not dot or not name or not field:
-        raise ValueError(f"expected NAME.FIELD (e.g. open-loop.d_max_m), got '{key}'")
+        raise ConfigError(f"expected NAME.FIELD (e.g. open-loop.d_max_m), got '{key}'")
     return name, field
 
 
@@ -74,7 +75,7 @@ def parse_assignment(text: str) -> tuple[str, str, list[str]]:
     """'closed-loop.D=9,16' → ('closed-loop', 'D', ['9', '16'])."""
     key, eq, values = text.partition("=")
     if not eq or not values.strip():
-        raise ValueError(f"expected NAME.FIELD=VALUE[,VALUE...], got '{text}'")
+        raise ConfigError(f"expected NAME.FIELD=VALUE[,VALUE...], got '{text}'")
     name, field = split_key(key)
     vals = [v.strip() for v in values.split(",") if v.strip()]
     return name, field, vals
@@ -89,7 +90,7 @@ def field_type(registry: Registry, name: str, field: str) -> Any:
         types = _field_types(typ) if dataclasses.is_dataclass(typ) else {}
         if part not in types:
             where = ".".join(path[:depth]) or "config"
-            raise ValueError(
+            raise ConfigError(
                 f"{registry.kind} '{name}' has no field '{part}' in its {where}; fields: "
                 + (", ".join(types) or "(none)")
             )
@@ -120,7 +121,7 @@ def build_config(registry: Registry, name: str, overrides: Iterable[tuple[str, A
         for field, value in over.items():
             cfg = _replace_path(cfg, field.split("."), value)
     except (TypeError, ValueError) as e:
-        raise ValueError(f"{name}: {e}") from None
+        raise ConfigError(f"{name}: {e}") from None
     return cfg
 
 
@@ -154,9 +155,9 @@ def parse_sets(
     for text in texts:
         name, field, vals = parse_assignment(text)
         if len(vals) != 1:
-            raise ValueError(f"--set takes one value, got '{text}' (use --sweep for several)")
+            raise ConfigError(f"--set takes one value, got '{text}' (use --sweep for several)")
         if name not in registries:
-            raise ValueError(
+            raise ConfigError(
                 f"--set {text}: '{name}' is not in this study; names: {', '.join(allowed)}"
             )
         reg = registries[name]

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
+from hardware.errors import DatasetError
 from hardware.geometry import wrap1
 from hardware.messages import GroundTruthPose, Message, merge
 from hardware.registry import Registry, UnknownNameError
@@ -53,10 +54,6 @@ __all__ = [
     "import_to_log",
     "open_dataset",
 ]
-
-
-class DatasetError(ValueError):
-    """A dataset file (or option) that cannot be used; the message is one line naming it."""
 
 
 StreamFactory = Callable[[], Iterable[Message]]

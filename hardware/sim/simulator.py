@@ -92,6 +92,8 @@ class SimConfig:
 
     def __post_init__(self) -> None:
         surface_coefficient(self.surface)
+        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
+            raise ValueError(f"duration must be > 0 s, got {self.duration_s}")
         for name in ("encoder_rate_hz", "depth_rate_hz", "tag_rate_hz", "groundtruth_rate_hz"):
             rate = getattr(self, name)
             if rate <= 0 or self.physics_rate_hz % rate:

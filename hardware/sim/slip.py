@@ -18,6 +18,8 @@ import math
 
 import numpy as np
 
+from hardware.errors import ConfigError
+
 SURFACES: dict[str, float] = {"clean": 0.02, "dusty": 0.12}
 
 
@@ -29,14 +31,14 @@ def surface_coefficient(surface: str | float) -> float:
         try:
             value = float(surface)
         except ValueError:
-            raise ValueError(
+            raise ConfigError(
                 f"unknown surface '{surface}'; valid: {', '.join(SURFACES)} "
                 "or a number in [0, 0.95]"
             ) from None
     else:
         value = float(surface)
     if not 0.0 <= value <= 0.95:
-        raise ValueError(f"surface slip coefficient must be in [0, 0.95], got {value}")
+        raise ConfigError(f"surface slip coefficient must be in [0, 0.95], got {value}")
     return value
 
 

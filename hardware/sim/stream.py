@@ -38,6 +38,7 @@ import numpy as np
 
 from hardware.calibration import WalkerCalibration
 from hardware.clock import HostClock
+from hardware.errors import DeviceError
 from hardware.messages import (
     CameraIntrinsics,
     Collision,
@@ -53,7 +54,7 @@ MAX_HEADER = 1 << 20
 MAX_PAYLOAD = 64 << 20
 
 
-class StreamError(ValueError):
+class StreamError(DeviceError):
     """The sensor stream is broken (bad framing, unknown record); one line."""
 
 

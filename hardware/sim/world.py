@@ -72,6 +72,7 @@ from typing import Any
 
 import numpy as np
 
+from hardware.errors import ConfigError, UnknownNameError
 from hardware.frames import make_transform
 from hardware.sim.collision import Contact, PolygonSet, rectangle
 
@@ -400,13 +401,11 @@ class World:
     @classmethod
     def from_dict(cls, d: dict[str, Any], source: str = "world") -> World:
         """Build a world from `to_dict` output or a course file (module docstring);
-        problems raise ValueError starting with `source`."""
+        problems raise ConfigError (a ValueError) starting with `source`."""
         try:
             return _parse_world(d)
-        except _SpecError as e:
-            raise ValueError(f"{source}: {e}") from None
-        except ValueError as e:
-            raise ValueError(f"{source}: {e}") from None
+        except (_SpecError, ValueError) as e:
+            raise ConfigError(f"{source}: {e}") from None
 
 
 # ---------------------------------------------------------------------------------------
@@ -744,16 +743,16 @@ def load_world(name_or_path: str | Path) -> World:
         try:
             text = path.read_text(encoding="utf-8")
         except OSError as e:
-            raise ValueError(f"{path}: cannot read world file ({e.strerror})") from None
+            raise ConfigError(f"{path}: cannot read world file ({e.strerror})") from None
         source = str(path)
     else:
         names = available_courses()
         if s not in names:
-            raise ValueError(f"unknown course {s!r}; valid names: {', '.join(names)}")
+            raise UnknownNameError("course", s, names)
         text = _course_dir().joinpath(s + ".json").read_text(encoding="utf-8")
         source = f"built-in course {s!r}"
     try:
         d = json.loads(text)
     except json.JSONDecodeError as e:
-        raise ValueError(f"{source}: not valid JSON ({e.msg} at line {e.lineno})") from None
+        raise ConfigError(f"{source}: not valid JSON ({e.msg} at line {e.lineno})") from None
     return World.from_dict(d, source=source)
