@@ -26,6 +26,7 @@ from mcap.writer import Writer
 from mcap_protobuf.decoder import DecoderFactory
 
 import hardware.log as log_module
+import hardware.log.reader as log_reader
 from hardware.calibration import Mount, WalkerCalibration
 from hardware.log import (
     TOPICS,
@@ -578,7 +579,7 @@ def test_bad_files_raise_one_line_log_errors(
             def deny(*args: Any, **kw: Any) -> Any:
                 raise PermissionError(13, "Permission denied", str(path))
 
-            monkeypatch.setattr(log_module, "open", deny, raising=False)
+            monkeypatch.setattr(log_reader, "open", deny, raising=False)
     elif case == "text":
         path.write_text("t,left,right\n0.0,1,2\n")
     elif case == "empty":
