@@ -118,33 +118,43 @@ survives power loss. `close()` (or leaving the `with` block) writes the summary;
 close the writer. `LogWriter.write` may be called from several threads.
 
 Reading: `read_log` scans the file front to back and needs neither summary nor footer (so
-it also reads a log that is still being written). It stops at the first truncated or
-corrupt record (chunk CRCs are checked) and warns with `LogRecoveryWarning` how many
-messages and seconds it recovered. Messages come out in log-time order, ties in file
+it also reads a log that is still being written). Chunk CRCs are checked, and a record
+that does not parse is damage: the reader resynchronises on the next intact chunk (or
+metadata or attachment record), so a damaged chunk loses its own messages (about half a
+second of a recording) and nothing else, and a file cut short loses what came after the
+cut. For a damaged log it also reads the summary if that is intact (its CRC holds): the
+schemas and channels that the writer declared only inside a lost chunk come from there,
+and its indexes name what each damaged span held; without it, the later messages on
+those channels cannot be read and are counted as skipped. Metadata records have no CRC:
+damage inside one is found when it breaks the record's structure, UTF-8 or JSON.
+`LogRecoveryWarning` (one line) names each lost span (its bytes and log times; also
+`TrialLog.lost`) and how many messages were recovered; a log without damage gives none,
+whether or not its summary is intact. Messages come out in log-time order, ties in file
 order, whatever order they were written in. Channels whose schema it does not know are
 skipped with an `UnsupportedChannelWarning`, and so are images that are not 16UC1.
 Foxglove channels without companions (added by other tools) are read approximately: t
 from the timestamp, theta from the quaternion, angle_increment from the end angle,
 range_max = inf. `LogError` (one line, naming the file): missing, unreadable or empty
-file, not MCAP, truncated in the header or before any message, no calibration record.
-Decoded depth images are read-only arrays.
+file, not MCAP, truncated in the header or before any message, no readable calibration
+record. Decoded depth images are read-only arrays.
 
 The package: `schemas` (the channels' schemas), `codec` (the table of message types: topic,
-schemas, encoder and decoder of each), `writer` (LogWriter) and `reader` (the chunk
-scanning and parsing, TrialLog).
+schemas, encoder and decoder of each), `writer` (LogWriter), `records` (MCAP records at the
+byte level), `scan` (the data section read past damage) and `reader` (TrialLog).
 """
 
 from hardware.errors import LogError
 from hardware.log.codec import TOPICS, Companions, encode_parts
 from hardware.log.reader import (
-    MAGIC,
     LogReader,
     LogRecoveryWarning,
+    LostSpan,
     TrialLog,
     UnsupportedChannelWarning,
     read_log,
     replay,
 )
+from hardware.log.records import MAGIC
 from hardware.log.schemas import (
     CAMERA_CALIBRATION,
     DEPTH_EXACT,
@@ -177,6 +187,7 @@ __all__ = [
     "LogReader",
     "LogRecoveryWarning",
     "LogWriter",
+    "LostSpan",
     "TrialLog",
     "UnsupportedChannelWarning",
     "encode_parts",

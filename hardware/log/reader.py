@@ -1,52 +1,101 @@
-"""The replayer: the chunk scanning and parsing, and TrialLog (a trial log opened as a
-message source)."""
+"""The replayer: a trial log opened as a message source, its damage reported."""
 
 from __future__ import annotations
 
 import heapq
 import io
 import itertools
-import json
 import os
 import struct
 import warnings
-import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
-import lz4.frame
-import zstandard
-from mcap.data_stream import ReadDataStream
-from mcap.opcode import Opcode
-from mcap.records import Attachment, Channel, Header, Metadata, Schema
-from mcap.records import Message as McapMessage
-
 from hardware.calibration import WalkerCalibration
 from hardware.errors import LogError
 from hardware.log.codec import READERS, Companions, SchemaReader, Skip
+from hardware.log.records import Record, block_records
+from hardware.log.scan import Block, Contents, Damage, scan
 from hardware.messages import Message
-
-MAGIC = b"\x89MCAP0\r\n"
 
 
 class LogRecoveryWarning(UserWarning):
-    """A truncated or corrupt log was read up to its last intact record."""
+    """A truncated or damaged log was read past its damage: what was lost and kept."""
 
 
 class UnsupportedChannelWarning(UserWarning):
     """A channel (or its messages) that the replayer cannot turn into messages is skipped."""
 
 
-@dataclass
-class _Block:
-    """A chunk (or an unchunked message record) in the data section, in file order."""
+@dataclass(frozen=True)
+class LostSpan:
+    """Bytes [start, end) of a log that could not be read, and what they held."""
 
-    offset: int
-    start_ns: int
-    end_ns: int
-    channels: frozenset[int]
+    start: int
+    end: int
+    what: str  # "truncated", "corrupt chunk record", "unreadable bytes", ...
+    #: (first, last) log time [s] of the lost chunks, from the summary's chunk index;
+    #: None when the summary says no chunk was lost, or when there is no summary
+    log_time: tuple[float, float] | None
+    #: without a summary: where the intact chunks before the span end and those after it
+    #: begin, in log time (None: there is none); a recorder writes its chunks in time
+    #: order, so its lost messages lie between the two
+    between: tuple[float | None, float | None] | None
+    chunks: int | None  # chunks lost, when the summary says
+    names: tuple[str, ...] = ()  # metadata and attachments lost, when the summary says
+
+    def describe(self) -> str:
+        """One clause for the recovery warning."""
+        if self.what == "truncated":
+            return f"truncated at byte {self.start} (writer killed or still writing?)"
+        text = (
+            f"{self.what} at byte {self.start}: skipped bytes {self.start}-{self.end} "
+            f"({self.end - self.start} bytes)"
+        )
+        if self.log_time is not None:
+            n = self.chunks or 0
+            t0, t1 = self.log_time
+            text += f", lost log time {t0:.3f}-{t1:.3f} s ({n} chunk{'s' if n != 1 else ''})"
+        elif self.chunks == 0:
+            text += ", no chunk lost"
+        elif self.between is not None:  # in file order; a recorder's chunks are in time order
+            t0, t1 = self.between
+            if t0 is None:
+                text += f", lost what came before the intact chunk at log time {t1:.3f} s"
+            elif t1 is None:
+                text += f", lost what came after the intact chunk ending at log time {t0:.3f} s"
+            else:
+                text += (
+                    ", lost what lay between the intact chunks either side "
+                    f"(log time {t0:.3f} and {t1:.3f} s)"
+                )
+        return text + "".join(f", lost {name}" for name in self.names)
+
+
+def _lost_span(damage: Damage, contents: Contents) -> LostSpan:
+    """What a damaged span held: from the summary's indexes when the log has an intact
+    summary, else bounded by the blocks read either side of it."""
+    inside = range(damage.start, damage.end)
+    summary = contents.summary
+    if summary is not None:
+        chunks = [c for c in summary.chunks if c.chunk_start_offset in inside]
+        names = tuple(
+            [f"metadata {m.name!r}" for m in summary.metadata if m.offset in inside]
+            + [f"attachment {a.name!r}" for a in summary.attachments if a.offset in inside]
+        )
+        times = None
+        if chunks:
+            first = min(c.message_start_time for c in chunks)
+            times = (first / 1e9, max(c.message_end_time for c in chunks) / 1e9)
+        return LostSpan(damage.start, damage.end, damage.what, times, None, len(chunks), names)
+    before = [b.end_ns / 1e9 for b in contents.blocks if b.offset < damage.start]
+    after = [b.start_ns / 1e9 for b in contents.blocks if b.offset >= damage.end]
+    between = (max(before, default=None), min(after, default=None))
+    return LostSpan(
+        damage.start, damage.end, damage.what, None, between if before or after else None, None
+    )
 
 
 @dataclass
@@ -55,95 +104,31 @@ class _Role:
     reader: SchemaReader
 
 
-def _record_stream(body: bytes) -> ReadDataStream:
-    return ReadDataStream(io.BytesIO(body))
-
-
-_CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, CRC, len(compression)
-_RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
-_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
-
-
-_Record = tuple[int, int, bytes]  # a message record: (log time ns, channel id, data)
-
-
-def _chunk_records(body: bytes, validate: bool) -> tuple[list[_Record], list[Any]]:
-    """(messages, schema and channel records) of a chunk (MCAP spec layout), parsed with
-    struct: message records are fixed-layout and by far the most numerous, so this is much
-    faster than the generic record reader, which is kept for the rare schema and channel
-    records. Messages come as plain tuples, in file order."""
-    _, _, usize, crc, clen = _CHUNK_HEAD.unpack_from(body, 0)
-    pos = _CHUNK_HEAD.size
-    compression = body[pos : pos + clen].decode()
-    (dlen,) = struct.unpack_from("<Q", body, pos + clen)
-    pos += clen + 8
-    data = body[pos : pos + dlen]
-    if len(data) != dlen:
-        raise ValueError("truncated chunk")
-    if compression == "zstd":
-        data = zstandard.decompress(data, usize)
-    elif compression == "lz4":
-        data = lz4.frame.decompress(data)
-    elif compression:
-        raise ValueError(f"unsupported chunk compression {compression!r}")
-    if validate and crc and zlib.crc32(data) != crc:
-        raise ValueError("chunk CRC mismatch")
-    messages: list[_Record] = []
-    others: list[Any] = []
-    record_head, message_head = _RECORD_HEAD.unpack_from, _MESSAGE_HEAD.unpack_from
-    head, mhead = _RECORD_HEAD.size, _MESSAGE_HEAD.size
-    pos, n = 0, len(data)
-    while pos < n:
-        opcode, length = record_head(data, pos)
-        pos += head
-        end = pos + length
-        if end > n:
-            raise ValueError("truncated record in chunk")
-        if opcode == Opcode.MESSAGE:
-            channel, _, log_ns, _ = message_head(data, pos)
-            messages.append((log_ns, channel, data[pos + mhead : end]))
-        elif opcode == Opcode.SCHEMA:
-            others.append(Schema.read(_record_stream(data[pos:end])))
-        elif opcode == Opcode.CHANNEL:
-            others.append(Channel.read(_record_stream(data[pos:end])))
-        pos = end
-    return messages, others
-
-
-def _messages_in(opcode: int, body: bytes, validate: bool = False) -> tuple[list[_Record], list]:
-    """(messages, schema and channel records) of a chunk or an unchunked message record."""
-    if opcode == Opcode.CHUNK:
-        return _chunk_records(body, validate)
-    rec = McapMessage.read(_record_stream(body), len(body))
-    return [(rec.log_time, rec.channel_id, rec.data)], []
-
-
 class TrialLog:
     """A trial log opened for replay: calibration, metadata, attachments and messages; a
     message source (`hardware.source.Source`).
 
     Opening scans the whole file once (without needing its summary), so problems are
     reported here: `LogError` for files that cannot be used, `LogRecoveryWarning` for a
-    truncated or corrupt file, `UnsupportedChannelWarning` for channels it skips.
+    truncated or damaged file (read past the damage, see `lost`),
+    `UnsupportedChannelWarning` for channels it skips.
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
-        self.metadata: dict[str, dict[str, Any]] = {}
-        self.attachments: dict[str, bytes] = {}
-        self.complete = False  # False: truncated or corrupt, read up to the damage
-        self._blocks: list[_Block] = []
-        self._schemas: dict[int, Schema] = {}
-        self._channels: dict[int, Channel] = {}
-        self._counts: dict[int, list[int]] = {}  # channel -> [count, first ns, last ns]
-        problem = self._scan()
+        with self._open() as f:
+            contents = scan(f, self.path)
+        self.metadata: dict[str, dict[str, Any]] = dict(contents.metadata)
+        self.attachments: dict[str, bytes] = contents.attachments
+        #: False: truncated or damaged (read past the damage), or not closed by its writer
+        self.complete = contents.ended and not contents.damage
+        #: what could not be read, in file order
+        self.lost = [_lost_span(d, contents) for d in contents.damage]
+        self._blocks: list[Block] = contents.blocks
+        self._channels = contents.channels
         raw_cal = self.metadata.pop("calibration", None)
         if raw_cal is None:
-            self._fail(
-                f"truncated at byte {problem[0]} before the calibration record"
-                if problem
-                else "no calibration record"
-            )
+            self._fail(self._no_calibration())
         try:
             self.calibration = WalkerCalibration.from_dict(raw_cal)
         except (TypeError, ValueError) as e:
@@ -151,9 +136,11 @@ class TrialLog:
         self._roles: dict[int, _Role] = {}
         #: readable topics -> message type
         self.topics: dict[str, type] = {}
-        self._classify()
+        self._classify(contents)
         counts = [
-            self._counts[c] for c, r in self._roles.items() if r.reader.build and c in self._counts
+            contents.counts[c]
+            for c, r in self._roles.items()
+            if r.reader.build and c in contents.counts
         ]
         #: number of messages (companions not counted)
         self.message_count = sum(c[0] for c in counts)
@@ -161,20 +148,8 @@ class TrialLog:
         self.time_range = (
             (min(c[1] for c in counts) / 1e9, max(c[2] for c in counts) / 1e9) if counts else None
         )
-        if problem:
-            offset, what = problem
-            if self.message_count == 0:
-                self._fail(f"{what} at byte {offset} before any message")
-            first, last = self.time_range or (0.0, 0.0)
-            hint = " (writer killed or still writing?)" if what == "truncated" else ""
-            warnings.warn(
-                LogRecoveryWarning(
-                    f"{self.path.name}: {what} at byte {offset}{hint}; recovered "
-                    f"{self.message_count} messages spanning {last - first:.3f} s "
-                    f"(log time {first:.3f} to {last:.3f} s)"
-                ),
-                stacklevel=3,
-            )
+        if self.lost:
+            self._report(contents)
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[Message]:
         """Messages on `topics` (default all readable ones) in log-time order."""
@@ -213,7 +188,7 @@ class TrialLog:
     def close(self) -> None:
         """Nothing to release: every `messages()` iteration opens the file itself."""
 
-    # -- scanning
+    # -- opening
 
     def _fail(self, what: str) -> NoReturn:
         raise LogError(f"{self.path}: {what}")
@@ -230,96 +205,17 @@ class TrialLog:
         except OSError as e:
             self._fail(f"cannot open: {e.strerror}")
 
-    def _scan(self) -> tuple[int, str] | None:
-        """Read the data section; (byte offset, what) of the first damage, None if intact."""
-        with self._open() as f:
-            try:
-                size = os.fstat(f.fileno()).st_size
-                magic = f.read(len(MAGIC))
-            except OSError as e:
-                self._fail(f"cannot read: {e.strerror}")
-            if not magic:
-                self._fail("empty file (0 bytes)")
-            if magic != MAGIC:
-                if MAGIC.startswith(magic):
-                    self._fail(f"truncated in the header ({size} bytes)")
-                self._fail(f"not an MCAP file (starts with {magic!r})")
-            offset = len(MAGIC)
-            seen_header = False
-            while True:
-                head = f.read(9)
-                if len(head) < 9:
-                    what = "truncated"
-                    break
-                opcode, length = struct.unpack("<BQ", head)
-                if length > size - offset - 9:
-                    what = "truncated"
-                    break
-                body = f.read(length)
-                try:
-                    if not seen_header:
-                        if opcode != Opcode.HEADER:
-                            self._fail("not an MCAP file (no header record)")
-                        Header.read(_record_stream(body))
-                        seen_header = True
-                    elif opcode in (Opcode.CHUNK, Opcode.MESSAGE):
-                        self._scan_block(offset, opcode, body)
-                    elif opcode == Opcode.SCHEMA:
-                        schema = Schema.read(_record_stream(body))
-                        self._schemas[schema.id] = schema
-                    elif opcode == Opcode.CHANNEL:
-                        channel = Channel.read(_record_stream(body))
-                        self._channels[channel.id] = channel
-                    elif opcode == Opcode.METADATA:
-                        self._add_metadata(Metadata.read(_record_stream(body)))
-                    elif opcode == Opcode.ATTACHMENT:
-                        att = Attachment.read(_record_stream(body))
-                        self.attachments[att.name] = att.data
-                    elif opcode in (Opcode.DATA_END, Opcode.FOOTER):
-                        self.complete = True
-                        return None
-                except LogError:
-                    raise
-                except Exception:
-                    what = f"corrupt {_opcode_name(opcode)} record"
-                    break
-                offset += 9 + length
-            if not seen_header:
-                self._fail(f"truncated in the header ({size} bytes)")
-            return offset, what
+    def _no_calibration(self) -> str:
+        if not self.lost:
+            return "no calibration record"
+        first = self.lost[0]
+        if first.what == "truncated":
+            return f"truncated at byte {first.start} before the calibration record"
+        return f"no readable calibration record ({first.describe()})"
 
-    def _scan_block(self, offset: int, opcode: int, body: bytes) -> None:
-        messages, others = _messages_in(opcode, body, validate=True)
-        for rec in others:
-            if isinstance(rec, Schema):
-                self._schemas[rec.id] = rec
-            else:
-                self._channels[rec.id] = rec
-        if not messages:
-            return
-        per_channel: dict[int, list[int]] = {}
-        for ns, c, _ in messages:
-            per_channel.setdefault(c, []).append(ns)
-        for c, times in per_channel.items():
-            stats = self._counts.setdefault(c, [0, times[0], times[0]])
-            stats[0] += len(times)
-            stats[1], stats[2] = min(stats[1], *times), max(stats[2], *times)
-        start = min(ns for ns, _, _ in messages)
-        end = max(ns for ns, _, _ in messages)
-        self._blocks.append(_Block(offset, start, end, frozenset(per_channel)))
-
-    def _add_metadata(self, record: Metadata) -> None:
-        if set(record.metadata) == {"json"}:
-            try:
-                self.metadata[record.name] = json.loads(record.metadata["json"])
-            except ValueError as e:
-                self._fail(f"metadata record {record.name!r} is not JSON: {e}")
-        else:
-            self.metadata[record.name] = dict(record.metadata)
-
-    def _classify(self) -> None:
+    def _classify(self, contents: Contents) -> None:
         for cid, channel in sorted(self._channels.items()):
-            schema = self._schemas.get(channel.schema_id)
+            schema = contents.schemas.get(channel.schema_id)
             reader = READERS.get(schema.name) if schema else None
             main = channel.topic if reader and reader.build else channel.metadata.get("main_topic")
             if (
@@ -342,7 +238,45 @@ class TrialLog:
             if reader.cls is not None:
                 self.topics[main] = reader.cls
 
-    def _records(self, channels: set[int]) -> Iterator[tuple[int, int, bytes]]:
+    def _report(self, contents: Contents) -> None:
+        """LogError if nothing could be recovered, else the one-line LogRecoveryWarning:
+        each lost span, the channels that could not be read, what was recovered."""
+        undeclared = contents.undeclared
+        lost_records = sum(contents.counts[c][0] for c in undeclared)
+        unreadable = (
+            f"{lost_records} records on channels {', '.join(map(str, undeclared))} skipped: "
+            "their declarations were in the lost bytes and the log has no intact summary"
+            if undeclared
+            else ""
+        )
+        if self.message_count == 0:
+            first = self.lost[0]
+            self._fail(
+                f"{first.what} at byte {first.start} before any message"
+                + (f"; {unreadable}" if unreadable else "")
+            )
+        first, last = self.time_range or (0.0, 0.0)
+        expected = ""
+        summary = contents.summary
+        if summary is not None and summary.statistics is not None:
+            counts = summary.statistics.channel_message_counts
+            total = sum(
+                n for c, n in counts.items() if c in self._roles and self._roles[c].reader.build
+            )
+            expected = f" (of {total} in the summary)"
+        clauses = [span.describe() for span in self.lost] + ([unreadable] if unreadable else [])
+        warnings.warn(
+            LogRecoveryWarning(
+                f"{self.path.name}: {'; '.join(clauses)}; recovered {self.message_count} "
+                f"messages{expected} spanning {last - first:.3f} s "
+                f"(log time {first:.3f} to {last:.3f} s)"
+            ),
+            stacklevel=4,
+        )
+
+    # -- reading
+
+    def _records(self, channels: set[int]) -> Iterator[Record]:
         """(log time, channel, data) of the messages on `channels`, in log-time order
         (ties in file order)."""
         blocks = [b for b in self._blocks if b.channels & channels]
@@ -367,24 +301,17 @@ class TrialLog:
                     if rec[1] in channels:
                         heapq.heappush(heap, (rec[0], offset, i, rec))
 
-    def _read_block(self, f: io.BufferedReader, block: _Block) -> list[_Record]:
+    def _read_block(self, f: io.BufferedReader, block: Block) -> list[Record]:
         try:
             f.seek(block.offset)
             opcode, length = struct.unpack("<BQ", f.read(9))
-            return _messages_in(opcode, f.read(length))[0]
+            return block_records(opcode, f.read(length))[0]
         except Exception as e:
             self._fail(f"changed or unreadable while replaying (byte {block.offset}): {e!r}")
 
 
-def _log_time(record: _Record) -> int:
+def _log_time(record: Record) -> int:
     return record[0]
-
-
-def _opcode_name(opcode: int) -> str:
-    try:
-        return Opcode(opcode).name.lower()
-    except ValueError:
-        return f"opcode-{opcode:#x}"
 
 
 def read_log(path: str | os.PathLike[str]) -> TrialLog:

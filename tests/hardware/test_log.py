@@ -514,7 +514,8 @@ def test_truncated_files_replay_a_prefix(tmp_path: Path) -> None:
             read_log(part)
 
 
-def test_corrupt_chunk_stops_the_replay_there(tmp_path: Path) -> None:
+def test_corrupt_chunk_loses_only_its_own_messages(tmp_path: Path) -> None:
+    """More kinds of damage, on a simulated trial: tests/hardware/test_log_damage.py."""
     full = tmp_path / "full.mcap"
     msgs = chunked_log(full)
     with open(full, "rb") as f:
@@ -524,12 +525,20 @@ def test_corrupt_chunk_stops_the_replay_there(tmp_path: Path) -> None:
     data[third.chunk_start_offset + third.chunk_length - 20] ^= 0xFF
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(bytes(data))
-    with pytest.warns(LogRecoveryWarning, match="corrupt chunk record"):
-        got = read_all(bad)
-    assert 0 < len(got) < len(msgs)
-    assert all(m.t < third.message_start_time / 1e9 for m in got)
-    for a, b in zip(msgs, got, strict=False):
+    with pytest.warns(LogRecoveryWarning, match="corrupt chunk record") as caught:
+        log = read_log(bad)
+    got = list(log.messages())
+    in_third = range(third.message_start_time, third.message_end_time + 1)
+    kept = [m for m in msgs if round(m.t * 1e9) not in in_third]
+    assert 0 < len(kept) < len(msgs) and len(got) == len(kept)
+    for a, b in zip(kept, got, strict=True):
         assert_same(a, b)
+    assert not log.complete
+    text = str(caught[0].message)
+    start, end = third.chunk_start_offset, chunks[3].chunk_start_offset
+    assert f"corrupt chunk record at byte {start}: skipped bytes {start}-{end}" in text
+    assert f"lost log time {third.message_start_time / 1e9:.3f}-" in text
+    assert f"recovered {len(kept)} messages (of {len(msgs)} in the summary)" in text
 
 
 # ---------------------------------------------------------------- bad input
