@@ -139,7 +139,7 @@ SetOpt = Annotated[
 
 def _localizer_overrides(sets: list[str] | None, names: list[str]) -> dict[str, dict]:
     """--set options → {localizer: {field path: typed value}}, for the localizers run."""
-    from experiments.studies.settings import parse_sets
+    from experiments.config import parse_sets
     from slam.base import LOCALIZERS
 
     return parse_sets(sets or [], {n: LOCALIZERS for n in names}, names)
@@ -241,8 +241,8 @@ def replay(
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
     from control.base import CONTROLLERS
+    from experiments.config import configure
     from experiments.run import replay_log
-    from experiments.studies.settings import build_config, source_settings
     from hardware.log import read_log
     from mapping.grid import GridConfig, MapModel
     from mapping.mapper import MapperConfig
@@ -250,7 +250,8 @@ def replay(
 
     LOCALIZERS.spec(localizer)  # an unknown name: one line, before any work
     overrides = _localizer_overrides(set_, [localizer]).get(localizer, {})
-    build_config(LOCALIZERS, localizer, overrides.items())  # a bad --set fails early
+    configure(LOCALIZERS, localizer, None, overrides)  # a bad --set fails early
+    _check_out_dir(out)
     if controller is not None:
         CONTROLLERS.spec(controller)  # an unknown name: one line, before any work
     if map_model not in [m.value for m in MapModel]:
@@ -274,8 +275,10 @@ def replay(
         return t - start[0]
 
     # the settings the source proposes (e.g. a dataset's noise levels), then --set
-    proposed = source_settings(LOCALIZERS, localizer, trial.metadata)
-    localizer_config = build_config(LOCALIZERS, localizer, [*proposed.items(), *overrides.items()])
+    built = configure(LOCALIZERS, localizer, trial.metadata, overrides)
+    if built.proposed:
+        what = ", ".join(f"{k}={v}" for k, v in built.proposed.items())
+        err_console.print(f"note: the source proposes {what}", highlight=False, soft_wrap=True)
     view = None
     if foxglove:
         from experiments.live_view import FoxgloveView
@@ -290,10 +293,11 @@ def replay(
                 trial,
                 out,
                 localizer=localizer,
-                localizer_config=localizer_config,
+                localizer_overrides=overrides,
                 mapper_config=mapper_config,
                 controller=controller,
                 progress=lambda t: update(elapsed(t)),
+                phase=update.phase,
                 observers=(
                     (lambda p: [view.observer(p, realtime=not fast, speed=speed)])
                     if view is not None
@@ -308,6 +312,12 @@ def replay(
     finally:
         if view is not None:
             view.close()
+
+
+def _check_out_dir(out: Path) -> None:
+    """An output folder that cannot be one fails before any work."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: the output folder is a file")
 
 
 def _linger(view, seconds: float | None) -> None:

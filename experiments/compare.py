@@ -9,14 +9,14 @@ import json
 import math
 import sqlite3
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from experiments.config import configure
 from experiments.run import MAP_BAND_M, ReplayResult, replay_log
-from experiments.studies.settings import build_config, source_settings
 from hardware.datasets import Dataset
 from hardware.log import TrialLog, read_log
 from slam.base import LOCALIZERS
@@ -123,9 +123,9 @@ def compare(
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> CompareResult:
     """Every localizer on every source; `overrides` = {localizer: {field path: value}}
-    changes fields of a localizer's default config (experiments.studies.settings), after
-    the settings the source proposes (its metadata "localizer_settings", e.g. a dataset's
-    fitted noise levels: `source_settings`)."""
+    changes fields of a localizer's default config, after the settings the source
+    proposes (its metadata "localizer_settings", e.g. a dataset's fitted noise levels):
+    `experiments.config.configure`."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.db").unlink(missing_ok=True)  # this comparison's runs only, like the CSV
@@ -140,11 +140,10 @@ def compare(
         trial = source if isinstance(source, TrialLog | Dataset) else read_log(source)
         name = source_name(source)
         for loc in localizers:
-            proposed = source_settings(LOCALIZERS, loc, trial.metadata)
-            user = (overrides or {}).get(loc, {})
-            base = build_config(LOCALIZERS, loc, [*proposed.items(), *user.items()])
+            user = dict((overrides or {}).get(loc, {}))
+            configure(LOCALIZERS, loc, trial.metadata, user)  # bad settings fail first
             for seed in range(seeds) if is_stochastic(loc) else [None]:
-                cfg = base if seed is None else replace(base, seed=seed)
+                over = user if seed is None else {**user, "seed": seed}
                 run_dir = out / name / loc / ("run" if seed is None else f"seed{seed}")
                 if progress is not None:
                     progress(f"{name} · {loc}" + ("" if seed is None else f" · seed {seed}"))
@@ -152,7 +151,7 @@ def compare(
                     trial,
                     run_dir,
                     localizer=loc,
-                    localizer_config=cfg,
+                    localizer_overrides=over,
                     figures=False,
                     reference_map=False,
                     drag_metrics=False,

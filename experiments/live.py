@@ -39,8 +39,8 @@ import numpy as np
 
 from control.base import CONTROLLERS
 from control.safety import SafeController
+from experiments.config import configure
 from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
-from experiments.studies.settings import build_config, source_settings
 from hardware.arduino import ArduinoBoard, BoardConfig, BoardStats
 from hardware.calibration import WalkerCalibration, load_calibration
 from hardware.clock import HostClock
@@ -378,10 +378,10 @@ class LiveRun:
         opts = self.options
         LOCALIZERS.spec(opts.localizer)
         CONTROLLERS.spec(opts.controller)
-        build_config(LOCALIZERS, opts.localizer, opts.localizer_overrides.items())
+        configure(LOCALIZERS, opts.localizer, None, opts.localizer_overrides)
         if opts.sim is None and not opts.serial:
             raise LiveError("live needs --serial PORT (or --sim)")
-        return build_config(CONTROLLERS, opts.controller, opts.controller_overrides.items())
+        return configure(CONTROLLERS, opts.controller, None, opts.controller_overrides).config
 
     def _open_devices(self) -> None:
         """The simulated walker (--sim), the board (handshake), the cameras."""
@@ -411,11 +411,9 @@ class LiveRun:
         safety layer, pipeline."""
         opts, cal = self.options, self.cal
         self.initial = (self.metadata.get("world") or {}).get("start_pose") or (0.0, 0.0, 0.0)
-        self.proposed = source_settings(LOCALIZERS, opts.localizer, self.metadata)
-        loc_cfg = build_config(
-            LOCALIZERS, opts.localizer, [*self.proposed.items(), *opts.localizer_overrides.items()]
-        )
-        loc = create(opts.localizer, cal, loc_cfg, initial_pose=tuple(self.initial))
+        built = configure(LOCALIZERS, opts.localizer, self.metadata, opts.localizer_overrides)
+        self.proposed = built.proposed
+        loc = create(opts.localizer, cal, built.config, initial_pose=tuple(self.initial))
         ctl = CONTROLLERS.create(opts.controller, cal, config=ctl_cfg)
         self._safe = SafeController(ctl, cal, opts.loop.safety)
         self.pipeline = Pipeline(loc, cal, reference_map=False)

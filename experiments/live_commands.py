@@ -195,8 +195,8 @@ def register(app: typer.Typer) -> None:
         from dataclasses import replace
 
         from control.base import CONTROLLERS
+        from experiments.config import parse_sets
         from experiments.live import LIVE_LOOP, LiveError, LiveOptions, LiveRun, SimWalker
-        from experiments.studies.settings import parse_sets
         from slam.base import LOCALIZERS
 
         LOCALIZERS.spec(localizer)

@@ -32,7 +32,7 @@ from hardware.messages import (
 )
 from hardware.source import CommandSink, TimedSource
 from mapping.mapper import MapperConfig, OccupancyMapper
-from slam.base import Localizer
+from slam.base import Localizer, MapScorer
 from slam.trajectory import Trajectory
 
 # Ground truth is used for the reference map only when it is this close in time.
@@ -77,7 +77,8 @@ class Pipeline:
         self.reference = OccupancyMapper(calibration, mapper_config) if reference_map else None
         self.recorded = Recorded()
         self._latest_truth: GroundTruthPose | None = None
-        localizer.attach_map(self.mapper)
+        if isinstance(localizer, MapScorer):  # it scores frames against the shared map
+            localizer.attach_map(self.mapper)
         # A smoother revises past poses: keep its frames (keyed by time) to rebuild the map.
         self._keep_frames = localizer.revises_past
         self._built_revision = localizer.revision

@@ -11,8 +11,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, is_dataclass, replace
-from importlib import metadata
+from dataclasses import asdict, dataclass, field, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,20 +20,20 @@ import numpy as np
 from control.base import CONTROLLERS
 from experiments import drag
 from experiments import metrics as M
+from experiments.config import Configured, configure
 from experiments.drag import DragConfig
-from experiments.pipeline import FeedOrder, LoopConfig, Pipeline, run_closed_loop
-from experiments.studies.settings import build_config, source_settings
+from experiments.pipeline import LoopConfig, Pipeline
+from experiments.simulation import VERSION, RunSpec, simulate
 from hardware.datasets import Dataset
-from hardware.log import LogWriter, TrialLog, read_log
-from hardware.registry import UnknownNameError
-from hardware.sim.simulator import SimConfig, Simulator
-from hardware.sim.world import World, load_world
+from hardware.errors import ConfigError, UnknownNameError
+from hardware.log import TrialLog, read_log
+from hardware.sim.simulator import SimConfig
+from hardware.sim.world import World
 from mapping.export import save_map_server
 from mapping.mapper import MapperConfig
 from slam import landmarks
-from slam.base import LOCALIZERS, create
+from slam.base import LOCALIZERS, LandmarkMapper, create
 
-VERSION = metadata.version("walker-slam")  # from pyproject.toml, via the install
 # The mapper's obstacle band: what the map should show of the true world.
 MAP_BAND_M = (0.05, 2.0)
 
@@ -67,45 +66,25 @@ def simulate_trial(
     loop: LoopConfig | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> SimulateResult:
-    """Simulate `course` in closed loop and record everything to an MCAP trial log."""
-    world = load_world(course)
-    cfg = replace(sim_config or SimConfig(), surface=surface, seed=seed, duration_s=duration_s)
-    loop = loop or LoopConfig()
-    sim = Simulator(world, cfg)
-    cal = sim.calibration
-    # The trial proposes its simulated encoders' noise to every later replay; the live
-    # localizer takes it too, so a live run and its replay are the same run.
-    loc_cfg = build_config(
-        LOCALIZERS, localizer, source_settings(LOCALIZERS, localizer, sim.metadata).items()
+    """Simulate `course` in closed loop and record everything to an MCAP trial log
+    (`experiments.simulation.simulate`, the studies' trials' implementation too)."""
+    spec = RunSpec(
+        course,
+        controller,
+        localizer,
+        surface=surface,
+        seed=seed,
+        duration_s=duration_s,
+        seed_localizer=False,
+        log_path=str(out_path),
     )
-    loc = create(localizer, cal, loc_cfg, initial_pose=world.start_pose)
-    ctl_spec = CONTROLLERS.spec(controller)
-    ctl = CONTROLLERS.create(controller, cal)
-    config = {
-        "command": "simulate",
-        "walker_slam_version": VERSION,
-        "course": course,
-        "initial_pose": list(world.start_pose),
-        "controller": controller,
-        "controller_config": _jsonable(ctl_spec.config_type()),
-        "localizer": localizer,
-        "localizer_config": _jsonable(loc.config),
-        "loop": asdict(loop),
-        "sim": cfg.to_dict(),
-    }
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    pipeline = Pipeline(loc, cal, reference_map=False)
-    t0 = time.perf_counter()
-    metadata = {"config": config, **sim.metadata}
-    with LogWriter(out_path, cal, metadata=metadata) as log:
-        run_closed_loop(sim, sim, pipeline, ctl, loop, record=FeedOrder(log), progress=progress)
+    run = simulate(spec, sim_config=sim_config, loop=loop, progress=progress)
     return SimulateResult(
-        out_path,
-        sim.t,
-        time.perf_counter() - t0,
-        M.collision_counts(pipeline.recorded.collisions),
-        bool(sim.user.finished),
+        Path(out_path),
+        run.sim.t,
+        run.wall_s,
+        M.collision_counts(run.pipeline.recorded.collisions),
+        bool(run.sim.user.finished),
     )
 
 
@@ -124,12 +103,36 @@ class ReplayResult:
     world: World | None = None
 
 
+@dataclass
+class _Replay:
+    """A replay being built, run and evaluated (the steps of `replay_log`)."""
+
+    trial: TrialLog | Dataset
+    log_path: str
+    out: Path
+    localizer: str
+    built: Configured
+    pipeline: Pipeline
+    world: World | None
+    true_landmarks: dict | None
+    outlines: list
+    drag_cfg: DragConfig
+    controller: str | None
+    phantom: drag.PhantomSeries | None = None
+    frame_drag: drag.FrameDrag | None = None
+    recomputer: drag.CommandRecomputer | None = None
+    reference_commands: drag.CommandRecomputer | None = None
+    observed: drag.Observed | None = None
+    runtime_s: float = 0.0
+
+
 def replay_log(
     log: str | Path | TrialLog | Dataset,
     out_dir: str | Path,
     *,
     localizer: str = "dead-reckoning",
     localizer_config: Any = None,
+    localizer_overrides: dict[str, Any] | None = None,
     mapper_config: MapperConfig | None = None,
     figures: bool = True,
     reference_map: bool = True,
@@ -137,12 +140,18 @@ def replay_log(
     drag_config: DragConfig | None = None,
     drag_metrics: bool = True,
     progress: Callable[[float], None] | None = None,
+    phase: Callable[[str], None] | None = None,
     observers: Callable[[Pipeline], Sequence[Any]] | None = None,
 ) -> ReplayResult:
     """Run a recorded trial (a log path, an opened log or an opened dataset) through a
     localizer and the mapper; write estimates, maps, metrics against ground truth (when
-    the source has it) and the run's config.
+    the source has it) and the run's config — in four steps: build, run, evaluate, write.
 
+    The localizer's config: `localizer_config` as it is, or else its defaults, then the
+    settings the source proposes (metadata "localizer_settings", e.g. a dataset's fitted
+    noise levels), then `localizer_overrides` ({field path: value}, the user's --set)
+    (`experiments.config.configure`; config.json records which proposals applied and
+    which the config had no field for).
     reference_map: also map the same frames at the true poses (when the log has ground
     truth), for the side-by-side figure, the reference map scores and the over-steer
     metric (experiments.drag).
@@ -156,150 +165,191 @@ def replay_log(
     observers: given the pipeline, more observers of the message stream
     (`experiments.drag.Observed`: before(msg), after(msg)), e.g. the live view's
     (`FoxgloveView.observer`); their time is left out of the real-time factor too.
-    localizer_config None: the localizer's defaults with the settings the source proposes
-    (metadata "localizer_settings", e.g. a dataset's fitted noise levels; see
-    `experiments.studies.settings.source_settings`); a config given is used as it is.
+    progress(t): each message's time; phase(text): what happens after the messages
+    (metrics, figures), for a progress display.
     """
+    r = _build(
+        log, out_dir, localizer, localizer_config, localizer_overrides, mapper_config,
+        reference_map, controller, drag_config,
+    )  # fmt: skip
+    _attach_evaluation(r, drag_metrics, observers)
+    _run(r, progress)
+    if phase is not None:
+        phase("metrics")
+    metrics, gt = _evaluate(r)
+    if phase is not None:
+        phase("figures and files" if figures else "files")
+    files = _write(r, metrics, gt, figures)
+    duration = metrics["duration_s"]
+    return ReplayResult(r.out, metrics, duration, files, r.pipeline, r.world)
+
+
+def _out_dir(out_dir: str | Path) -> Path:
+    """The output folder, made now (a user's mistake fails before the replay)."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: the output folder is a file")
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def _build(
+    log, out_dir, localizer, localizer_config, overrides, mapper_config, reference_map,
+    controller, drag_config,
+) -> _Replay:  # fmt: skip
+    """The source, the localizer's config, the localizer, the pipeline."""
     trial = log if isinstance(log, TrialLog | Dataset) else read_log(log)
-    log_path = trial.path if isinstance(trial, TrialLog) else f"{trial.name}"
-    cal = trial.calibration
-    world = World.from_dict(trial.metadata["world"]) if "world" in trial.metadata else None
-    initial_pose = trial.metadata.get("config", {}).get("initial_pose")
-    true_landmarks = landmarks.from_metadata(trial.metadata)
-    proposed = source_settings(LOCALIZERS, localizer, trial.metadata)
-    if localizer_config is None:
-        localizer_config = build_config(LOCALIZERS, localizer, proposed.items())
-    loc = create(
-        localizer,
-        cal,
-        localizer_config,
-        initial_pose=initial_pose,
-        landmark_map=true_landmarks,
-    )
+    log_path = str(trial.path) if isinstance(trial, TrialLog) else f"{trial.name}"
+    out = _out_dir(out_dir)
     if controller is not None:
         CONTROLLERS.spec(controller)  # an unknown name fails before the replay
-    pipeline = Pipeline(loc, cal, mapper_config, reference_map=reference_map)
-    drag_cfg = drag_config or DragConfig()
+    world = World.from_dict(trial.metadata["world"]) if "world" in trial.metadata else None
+    true_landmarks = landmarks.from_metadata(trial.metadata)
+    if localizer_config is None:
+        built = configure(LOCALIZERS, localizer, trial.metadata, overrides or {})
+    else:
+        built = Configured(localizer_config)
+    loc = create(
+        localizer,
+        trial.calibration,
+        built.config,
+        initial_pose=trial.metadata.get("config", {}).get("initial_pose"),
+        landmark_map=true_landmarks,
+    )
+    pipeline = Pipeline(loc, trial.calibration, mapper_config, reference_map=reference_map)
     outlines = [p for _, p in world.footprint_polygons(*MAP_BAND_M)] if world is not None else []
+    return _Replay(
+        trial, log_path, out, localizer, built, pipeline, world, true_landmarks, outlines,
+        drag_config or DragConfig(), controller,
+    )  # fmt: skip
+
+
+def _attach_evaluation(r: _Replay, drag_metrics: bool, observers) -> None:
+    """What watches the replay's messages: the drag metrics, a recomputing controller,
+    the same controller at the true pose (over-steer), the caller's observers."""
+    pipeline, cal = r.pipeline, r.trial.calibration
     truth = drag.TruthTracker()
-    phantom = (
-        drag.PhantomSeries(pipeline, outlines, drag_cfg)
-        if world is not None and drag_metrics
-        else None
-    )
-    frame_drag = drag.FrameDrag(pipeline, truth, drag_cfg) if drag_metrics else None
-    recomputer = (
-        drag.CommandRecomputer(controller, cal, drag.estimated_input(pipeline))
-        if controller is not None
-        else None
-    )
-    recorded_controller = (trial.metadata.get("config") or {}).get("controller")
-    steer_name = controller or _registered_controller(recorded_controller)
-    reference_commands = (
-        drag.CommandRecomputer(steer_name, cal, drag.true_input(pipeline, truth))
-        if steer_name is not None and pipeline.reference is not None and drag_metrics
-        else None
-    )
+    if r.world is not None and drag_metrics:
+        r.phantom = drag.PhantomSeries(pipeline, r.outlines, r.drag_cfg)
+    if drag_metrics:
+        r.frame_drag = drag.FrameDrag(pipeline, truth, r.drag_cfg)
+    if r.controller is not None:
+        r.recomputer = drag.CommandRecomputer(r.controller, cal, drag.estimated_input(pipeline))
+    recorded = (r.trial.metadata.get("config") or {}).get("controller")
+    steer = r.controller or _registered_controller(recorded)
+    if steer is not None and pipeline.reference is not None and drag_metrics:
+        r.reference_commands = drag.CommandRecomputer(steer, cal, drag.true_input(pipeline, truth))
     watching = [
-        o for o in (truth, phantom, frame_drag, recomputer, reference_commands) if o is not None
+        o
+        for o in (truth, r.phantom, r.frame_drag, r.recomputer, r.reference_commands)
+        if o is not None
     ]
     if observers is not None:
         watching += list(observers(pipeline))
-    source = drag.Observed(trial.messages(), watching)
-    t0 = time.perf_counter()
-    pipeline.run(source, progress)
-    runtime = time.perf_counter() - t0 - source.seconds  # the evaluation left out
+    r.observed = drag.Observed(r.trial.messages(), watching)
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    rec = pipeline.recorded
+
+def _run(r: _Replay, progress) -> None:
+    """Every message through the pipeline; the evaluation's time left out."""
+    t0 = time.perf_counter()
+    r.pipeline.run(r.observed, progress)
+    r.runtime_s = time.perf_counter() - t0 - r.observed.seconds
+
+
+def _evaluate(r: _Replay):
+    """The metrics (metrics.json) and the ground-truth trajectory (when known); warns
+    about dropped messages and a localizer's fallback."""
+    pipeline, cal = r.pipeline, r.trial.calibration
+    loc, rec = pipeline.localizer, pipeline.recorded
     duration = rec.t_last - rec.t_first if rec.counts else 0.0
-    files: dict[str, Path] = {}
+    runtime = r.runtime_s
     metrics: dict[str, Any] = {
-        "log": str(log_path),
-        "localizer": localizer,
+        "log": r.log_path,
+        "localizer": r.localizer,
         "duration_s": duration,
         "messages": rec.counts,
         "runtime_s": runtime,
         "realtime_factor": duration / runtime if runtime > 0 else math.inf,
-        "evaluation_runtime_s": source.seconds,  # drag metrics during the replay
+        "evaluation_runtime_s": r.observed.seconds,  # drag metrics during the replay
     }
-    estimated_landmarks = None
-    if true_landmarks is not None and hasattr(loc, "landmarks"):
-        estimated_landmarks = {i: mean for i, (mean, _) in loc.landmarks().items()}
-        metrics["landmark_rmse_unaligned_m"] = M.landmark_rmse(estimated_landmarks, true_landmarks)
-    diagnostics = loc.diagnostics()
+    estimated = None
+    if r.true_landmarks is not None and isinstance(loc, LandmarkMapper):
+        estimated = {i: mean for i, (mean, _) in loc.landmarks().items()}
+        metrics["landmark_rmse_unaligned_m"] = M.landmark_rmse(estimated, r.true_landmarks)
+    _diagnostics(r, metrics)
+    est = loc.trajectory()
+    gt = rec.groundtruth_trajectory()
+    if gt is not None and len(est) > 1:
+        metrics.update(M.ate(est, gt))
+        metrics.update(M.rpe(est, gt))
+        if estimated is not None:
+            metrics["landmark_rmse_m"] = M.landmark_rmse(
+                estimated, r.true_landmarks, M.trajectory_alignment(est, gt)
+            )
+    if "relations" in r.trial.metadata and len(est) > 1:
+        metrics.update(M.relation_errors(est, np.array(r.trial.metadata["relations"]["rows"])))
+    if r.world is not None:
+        area = pipeline.mapper.grid.resolution**2
+        metrics.update(M.map_scores(pipeline.mapper.occupied_xy(), area, r.outlines))
+        if pipeline.reference is not None and gt is not None:
+            ref = M.map_scores(pipeline.reference.occupied_xy(), area, r.outlines)
+            metrics["reference_map"] = {"note": "same frames mapped at the true poses", **ref}
+    if rec.collisions or r.world is not None:
+        metrics["collisions"] = M.collision_counts(rec.collisions)
+    if rec.commands:
+        off = cal.brake.torque_off_nm
+        metrics["braking_impulse_nms"] = M.braking_impulse(rec.commands, off, rec.t_last)
+        metrics["braking_impulse"] = M.braking_impulse_per_wheel(rec.commands, off, rec.t_last)
+    return metrics, gt
+
+
+def _diagnostics(r: _Replay, metrics: dict[str, Any]) -> None:
+    """The localizer's diagnostics and the messages dropped, in the metrics and warned."""
+    rec, diagnostics = r.pipeline.recorded, r.pipeline.localizer.diagnostics()
     if diagnostics:
         metrics["localizer_diagnostics"] = diagnostics
     if rec.out_of_order:
         metrics["out_of_order_dropped"] = dict(rec.out_of_order)
         what = ", ".join(f"{n} {name}" for name, n in sorted(rec.out_of_order.items()))
         warnings.warn(
-            f"{log_path}: dropped messages whose time went backwards in their stream: {what}",
+            f"{r.log_path}: dropped messages whose time went backwards in their stream: {what}",
             ReplayWarning,
-            stacklevel=2,
+            stacklevel=4,
         )
     if diagnostics.get("note"):
         warnings.warn(
-            f"{log_path}: {localizer}: {diagnostics['note']}", ReplayWarning, stacklevel=2
+            f"{r.log_path}: {r.localizer}: {diagnostics['note']}", ReplayWarning, stacklevel=4
         )
-    est = loc.trajectory()
-    files["trajectory"] = out / "trajectory.tum"
+
+
+def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, Path]:
+    """trajectory.tum, groundtruth.tum, the drag series, maps, figures, metrics.json,
+    config.json."""
+    out, pipeline = r.out, r.pipeline
+    est = pipeline.localizer.trajectory()
+    files: dict[str, Path] = {"trajectory": out / "trajectory.tum"}
     est.write_tum(files["trajectory"])
-    gt = rec.groundtruth_trajectory()
     if gt is not None and len(est) > 1:
         files["groundtruth"] = out / "groundtruth.tum"
         gt.write_tum(files["groundtruth"])
-        metrics.update(M.ate(est, gt))
-        metrics.update(M.rpe(est, gt))
-        if estimated_landmarks is not None:
-            metrics["landmark_rmse_m"] = M.landmark_rmse(
-                estimated_landmarks, true_landmarks, M.trajectory_alignment(est, gt)
-            )
-    if "relations" in trial.metadata and len(est) > 1:
-        metrics.update(M.relation_errors(est, np.array(trial.metadata["relations"]["rows"])))
-    if world is not None:
-        area = pipeline.mapper.grid.resolution**2
-        metrics.update(M.map_scores(pipeline.mapper.occupied_xy(), area, outlines))
-        if pipeline.reference is not None and gt is not None:
-            ref = M.map_scores(pipeline.reference.occupied_xy(), area, outlines)
-            metrics["reference_map"] = {"note": "same frames mapped at the true poses", **ref}
-    if rec.collisions or world is not None:
-        metrics["collisions"] = M.collision_counts(rec.collisions)
-    if rec.commands:
-        metrics["braking_impulse_nms"] = M.braking_impulse(
-            rec.commands, cal.brake.torque_off_nm, rec.t_last
-        )
-        metrics["braking_impulse"] = M.braking_impulse_per_wheel(
-            rec.commands, cal.brake.torque_off_nm, rec.t_last
-        )
     files.update(
         _drag_metrics(
-            metrics,
-            out,
-            pipeline,
-            gt,
-            phantom,
-            frame_drag,
-            recomputer,
-            reference_commands,
-            drag_cfg,
-            figures,
-            trial.metadata.get("config") or {},
+            metrics, out, pipeline, gt, r.phantom, r.frame_drag, r.recomputer,
+            r.reference_commands, r.drag_cfg, figures, r.trial.metadata.get("config") or {},
         )
-    )
-
+    )  # fmt: skip
     from experiments.report import write_map_png
 
     files["map_png"] = write_map_png(
-        out / "map.png", pipeline.mapper.grid, outlines, est, gt, localizer=localizer, log=log_path
-    )
+        out / "map.png", pipeline.mapper.grid, r.outlines, est, gt, localizer=r.localizer,
+        log=r.log_path,
+    )  # fmt: skip
     files["map_yaml"], files["map_pgm"] = save_map_server(pipeline.mapper.grid, out / "map.yaml")
     if figures:
         from experiments.report import write_figures
 
         files.update(
-            write_figures(out, pipeline, est, gt, outlines, localizer=localizer, log=log_path)
+            write_figures(out, pipeline, est, gt, r.outlines, localizer=r.localizer, log=r.log_path)
         )
     files["metrics"] = out / "metrics.json"
     files["metrics"].write_text(json.dumps(metrics, indent=2) + "\n")
@@ -307,17 +357,19 @@ def replay_log(
     run_config = {
         "command": "replay",
         "walker_slam_version": VERSION,
-        "log": str(log_path),
-        "localizer": localizer,
-        "localizer_config": _jsonable(loc.config),
-        "source_localizer_settings": proposed,
+        "log": r.log_path,
+        "localizer": r.localizer,
+        "localizer_config": _jsonable(pipeline.localizer.config),
+        "source_localizer_settings": r.built.proposed,
+        "source_localizer_settings_skipped": r.built.skipped,
+        "localizer_overrides": r.built.overrides,
         "mapper_config": _jsonable(pipeline.mapper.config),
-        "controller": controller,
-        "drag_config": asdict(drag_cfg),
-        "recorded_config": trial.metadata.get("config"),
+        "controller": r.controller,
+        "drag_config": asdict(r.drag_cfg),
+        "recorded_config": r.trial.metadata.get("config"),
     }
     files["config"].write_text(json.dumps(run_config, indent=2, default=str) + "\n")
-    return ReplayResult(out, metrics, duration, files, pipeline, world)
+    return files
 
 
 def _registered_controller(name: Any) -> str | None:

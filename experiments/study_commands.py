@@ -106,9 +106,9 @@ def register(app: typer.Typer) -> None:
         writes the collision table with the change against `none` (95 % CI), path
         figures, results.db, results.csv and report.md."""
         from control.base import CONTROLLERS
+        from experiments.config import parse_sets
         from experiments.studies.course import CourseStudy, run_course_study
         from experiments.studies.engine import check
-        from experiments.studies.settings import parse_sets
         from experiments.studies.tables import collision_rows
         from slam.base import LOCALIZERS
 
@@ -182,6 +182,7 @@ def register(app: typer.Typer) -> None:
         user pushing straight at 0.9–1.2 m/s; one figure per sweep with the individual
         and averaged paths, a table per setting, results.db, results.csv, report.md."""
         from control.base import CONTROLLERS
+        from experiments.config import parse_sets
         from experiments.studies.corner import (
             DEFAULT_SWEEPS,
             CornerStudy,
@@ -190,7 +191,6 @@ def register(app: typer.Typer) -> None:
             table_rows,
         )
         from experiments.studies.engine import check
-        from experiments.studies.settings import parse_sets
 
         sweeps = tuple(parse_sweep(s) for s in sweep) if sweep else DEFAULT_SWEEPS
         names = list(dict.fromkeys(s.controller for s in sweeps))

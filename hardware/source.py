@@ -27,7 +27,7 @@ from hardware.messages import BrakeCommand, Message
 
 # The metadata record in which a source proposes localizer settings ({config field path:
 # value}), e.g. a dataset's fitted noise levels or a simulated trial's encoder noise;
-# replay applies them before the user's --set (experiments.studies.settings).
+# replay applies them before the user's --set (experiments.config).
 PROPOSED_SETTINGS = "localizer_settings"
 
 

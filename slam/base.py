@@ -5,7 +5,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -14,7 +14,18 @@ from hardware.messages import Message
 from hardware.registry import Registry, UnknownNameError
 from slam.trajectory import Trajectory
 
-__all__ = ["LOCALIZERS", "Localizer", "PoseEstimate", "UnknownNameError", "available", "create"]
+__all__ = [
+    "LOCALIZERS",
+    "KnownMapConfig",
+    "LandmarkMapper",
+    "Localizer",
+    "LocalizerConfig",
+    "MapScorer",
+    "PoseEstimate",
+    "UnknownNameError",
+    "available",
+    "create",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,9 +63,41 @@ class Localizer(ABC):
         """What the localizer wants a researcher to know (counts, fallbacks); may be empty."""
         return {}
 
-    def attach_map(self, source: Any) -> None:  # noqa: B027 - optional hook, no-op default
-        """The pipeline hands over the shared occupancy mapper; localizers that score
-        frames against the map (particle-filter) keep it, the others ignore it."""
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """What every localizer's config has: initial_pose (x, y, θ), the pose at the first
+    message, which defines the map frame (a trial log records it in its config as
+    "initial_pose"; `create` sets it)."""
+
+    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class KnownMapConfig(LocalizerConfig):
+    """The config of a localizer that uses a known landmark map: landmark_map {id: (x,
+    y)}, filled from the trial log by `create(..., landmark_map=...)` when not given;
+    None: landmarks are not used."""
+
+    landmark_map: dict[int, np.ndarray] | None = None
+
+
+@runtime_checkable
+class LandmarkMapper(Protocol):
+    """A localizer that estimates landmark positions (ekf-slam, fastslam, gtsam)."""
+
+    def landmarks(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """{landmark id: (mean (x, y), 2×2 covariance)} in the map frame."""
+        ...
+
+
+@runtime_checkable
+class MapScorer(Protocol):
+    """A localizer that scores frames against the shared occupancy map (particle-filter
+    with scans; grid-rbpf takes its particles' maps' settings from it): the pipeline
+    hands its mapper over with `attach_map`."""
+
+    def attach_map(self, source: Any) -> None: ...
 
 
 # Members: the entry points of group "walker_slam.localizers" (pyproject.toml).
@@ -77,8 +120,10 @@ def create(
     ({id: (x, y)}, e.g. from the trial log) fills the config's `landmark_map` field when
     the localizer has one and it is not set; other localizers ignore it."""
     cfg = config if config is not None else LOCALIZERS.spec(name).config_type()
+    if not isinstance(cfg, LocalizerConfig):
+        raise TypeError(f"{name}'s config {type(cfg).__name__} is not a LocalizerConfig")
     if initial_pose is not None:
         cfg = replace(cfg, initial_pose=tuple(float(v) for v in initial_pose))
-    if landmark_map is not None and getattr(cfg, "landmark_map", False) is None:
+    if landmark_map is not None and isinstance(cfg, KnownMapConfig) and cfg.landmark_map is None:
         cfg = replace(cfg, landmark_map=landmark_map)
     return LOCALIZERS.create(name, calibration, config=cfg)

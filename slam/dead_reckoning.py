@@ -9,20 +9,19 @@ import numpy as np
 from hardware.calibration import WalkerCalibration
 from hardware.messages import Message
 from hardware.registry import Spec
-from slam.base import Localizer, PoseEstimate
+from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.motion import MotionNoise, OdometryModel, propagate
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 
 @dataclass(frozen=True)
-class DeadReckoningConfig:
+class DeadReckoningConfig(LocalizerConfig):
     """Dead-reckoning settings.
 
     initial_pose: (x, y, θ) at the first message (defines the map frame).
     noise: odometry noise for the covariance (see slam.motion.MotionNoise).
     """
 
-    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
     noise: MotionNoise = field(default_factory=MotionNoise)
 
 

@@ -17,7 +17,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
-from slam.base import Localizer, PoseEstimate
+from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -35,7 +35,7 @@ from slam.trajectory import Trajectory, TrajectoryRecorder
 
 
 @dataclass(frozen=True)
-class EkfSlamConfig:
+class EkfSlamConfig(LocalizerConfig):
     """EKF-SLAM settings.
 
     initial_pose: (x, y, θ), known exactly (it defines the map frame).
@@ -49,7 +49,6 @@ class EkfSlamConfig:
     "none": the filtered poses, each fixed when it was recorded.
     """
 
-    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
     noise: MotionNoise = field(default_factory=MotionNoise)
     range_sigma_m: float = RANGE_SIGMA_M
     range_sigma_frac: float = RANGE_SIGMA_FRAC

@@ -74,7 +74,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
-from slam.base import Localizer, PoseEstimate
+from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -109,7 +109,7 @@ CHI2_999 = {2: 13.815510557964274, 3: 16.26623619623813}
 
 
 @dataclass(frozen=True)
-class FastSlamConfig:
+class FastSlamConfig(LocalizerConfig):
     """FastSLAM settings.
 
     initial_pose: (x, y, θ), known exactly (it defines the map frame).
@@ -143,7 +143,6 @@ class FastSlamConfig:
     which jumps whenever the weights shift.
     """
 
-    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
     n_particles: int = 100
     version: int = 2
     noise: MotionNoise = field(default_factory=MotionNoise)

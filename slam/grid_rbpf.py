@@ -51,7 +51,7 @@ from mapping.depth_points import project_depth_frame
 from mapping.grid import GridExtent, HitCentroidGrid, make_grid
 from mapping.mapper import MapperConfig
 from mapping.scan_points import scan_to_observation
-from slam.base import PoseEstimate
+from slam.base import KnownMapConfig, PoseEstimate
 from slam.grid_kernels import frame_log_likelihood, hill_climb, poses_log_likelihood
 from slam.measurement import BEARING_SIGMA_RAD, RANGE_SIGMA_FRAC, RANGE_SIGMA_M
 from slam.motion import MotionNoise
@@ -62,7 +62,7 @@ from slam.trajectory import Trajectory
 
 
 @dataclass(frozen=True)
-class GridRbpfConfig:
+class GridRbpfConfig(KnownMapConfig):
     """Per-particle-map filter settings (the module docstring has the algorithm).
 
     initial_pose, initial_sigma, noise, landmark_map, use_landmarks, the landmark noise
@@ -88,14 +88,12 @@ class GridRbpfConfig:
     particles fail a late loop on some seeds).
     """
 
-    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
     initial_sigma: tuple[float, float, float] = (0.0, 0.0, 0.0)
     n_particles: int = 60
     noise: MotionNoise = field(default_factory=MotionNoise)
     range_sigma_m: float = RANGE_SIGMA_M
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
-    landmark_map: dict[int, np.ndarray] | None = None
     use_landmarks: bool = True
     z_hit: float = 0.9
     z_rand: float = 0.1

@@ -80,7 +80,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.geometry import compose, wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
-from slam.base import Localizer, PoseEstimate
+from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -107,7 +107,7 @@ OBSERVATIONS = ("range-bearing", "tag-pose")
 
 
 @dataclass(frozen=True)
-class GtsamConfig:
+class GtsamConfig(LocalizerConfig):
     """iSAM2 smoother settings.
 
     initial_pose: prior mean of the first keyframe (the map frame), with prior_sigma.
@@ -133,7 +133,6 @@ class GtsamConfig:
     matching; loop_*: loop closures.
     """
 
-    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
     prior_sigma: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
     noise: MotionNoise = field(default_factory=MotionNoise)
     keyframe_distance_m: float = 0.25

@@ -78,7 +78,7 @@ from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
 from mapping.depth_points import DepthConfig, project_depth_frame
 from mapping.scan_points import ScanConfig, scan_to_observation
-from slam.base import Localizer, PoseEstimate
+from slam.base import KnownMapConfig, Localizer, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -109,7 +109,7 @@ SMOOTHERS = ("rts", "ancestry", "none")
 
 
 @dataclass(frozen=True)
-class ParticleFilterConfig:
+class ParticleFilterConfig(KnownMapConfig):
     """Particle filter (Monte Carlo localization) settings.
 
     initial_pose: (x, y, θ) at the first message (defines the map frame).
@@ -165,14 +165,12 @@ class ParticleFilterConfig:
     the Rao-Blackwellized filter with a map per particle.
     """
 
-    initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
     initial_sigma: tuple[float, float, float] = (0.0, 0.0, 0.0)
     n_particles: int = 500
     noise: MotionNoise = field(default_factory=MotionNoise)
     range_sigma_m: float = RANGE_SIGMA_M
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
-    landmark_map: dict[int, np.ndarray] | None = None
     use_landmarks: bool = True
     use_scans: bool = False
     sigma_hit_m: float = 0.1

@@ -27,6 +27,7 @@ and averaged paths, walls), `report.md`, `study.json`, trial logs under `runs/`.
 from __future__ import annotations
 
 import math
+import typing
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -35,10 +36,10 @@ from typing import Any
 import numpy as np
 
 from control.base import CONTROLLERS
+from experiments.config import configure, convert, field_type, parse_assignment
+from experiments.simulation import RunSpec
 from experiments.studies import figures, tables
 from experiments.studies.runner import StudyResult, run_and_store, write_json
-from experiments.studies.settings import build_config, convert, field_type, parse_assignment
-from experiments.studies.trial import RunSpec
 from hardware.errors import ConfigError
 from hardware.registry import UnknownNameError
 from hardware.sim.dynamics import WalkerParams
@@ -122,10 +123,15 @@ DEFAULT_SWEEPS = (
 
 
 def parse_sweep(text: str) -> Sweep:
-    """'open-loop.d_max_m=0.75,1.25' → a Sweep (values typed by the config field)."""
+    """'open-loop.d_max_m=0.75,1.25' → a Sweep (values typed by the config field; a
+    field that takes several numbers itself cannot be swept this way)."""
     controller, fld, raw = parse_assignment(text)
     typ = field_type(CONTROLLERS, controller, fld)
-    return Sweep(controller, fld, tuple(convert(v, typ, f"{controller}.{fld}") for v in raw))
+    if typing.get_origin(typ) is tuple:
+        raise ConfigError(f"--sweep {text}: {controller}.{fld} takes several values; sweep "
+                          "a field of one value")  # fmt: skip
+    values = [v.strip() for v in raw.split(",") if v.strip()]
+    return Sweep(controller, fld, tuple(convert(v, typ, f"{controller}.{fld}") for v in values))
 
 
 @dataclass(frozen=True)
@@ -164,7 +170,7 @@ class CornerStudy:
             if not s.values:
                 raise ConfigError(f"sweep {s.name} has no values")
             for v in s.values:
-                build_config(CONTROLLERS, s.controller, self.overrides(s, v))
+                configure(CONTROLLERS, s.controller, None, self.overrides(s, v))
         unknown = sorted(set(self.settings) - {s.controller for s in self.sweeps})
         if unknown:
             raise ConfigError(f"settings for controllers not swept: {', '.join(unknown)}")

@@ -26,10 +26,10 @@ from pathlib import Path
 from typing import Any
 
 from control.base import CONTROLLERS
+from experiments.config import configure
+from experiments.simulation import RunSpec
 from experiments.studies import figures, tables
 from experiments.studies.runner import StudyResult, run_and_store, write_json
-from experiments.studies.settings import build_config
-from experiments.studies.trial import RunSpec
 from hardware.errors import ConfigError
 from hardware.sim.slip import surface_coefficient
 from hardware.sim.user import UserProfile
@@ -98,9 +98,9 @@ class CourseStudy:
             if dup:
                 raise ConfigError(f"repeated names: {', '.join(dup)}")
         for c in self.controllers:
-            build_config(CONTROLLERS, c, self.settings.get(c, {}).items())
+            configure(CONTROLLERS, c, None, self.settings.get(c, {}))
         for loc in self.localizers:
-            build_config(LOCALIZERS, loc, self.settings.get(loc, {}).items())
+            configure(LOCALIZERS, loc, None, self.settings.get(loc, {}))
         unknown = sorted(set(self.settings) - set(self.controllers) - set(self.localizers))
         if unknown:
             raise ConfigError(f"settings for names not in the study: {', '.join(unknown)}")

@@ -10,9 +10,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from experiments.simulation import RunSpec
 from experiments.studies.engine import run_tasks
 from experiments.studies.store import write_results
-from experiments.studies.trial import RunSpec, run_trial
+from experiments.studies.trial import run_trial
 
 
 @dataclass

@@ -201,3 +201,21 @@ def test_velocity_noise_does_not_depend_on_message_rate():
     noise = DeadReckoningConfig().noise
     # straight at 0.3 m/s for 2 s: var(x) = (k_v·v)²·2 s
     assert covs[1][0, 0] == pytest.approx((noise.velocity_frac * 0.3) ** 2 * 2.0, rel=1e-6)
+
+
+def test_localizer_contracts():
+    """Every registered localizer's config has the common fields; the capabilities are
+    typed protocols: what estimates landmarks, what scores against the shared map."""
+    from slam.base import LOCALIZERS, KnownMapConfig, LandmarkMapper, LocalizerConfig, MapScorer
+
+    cal = WalkerCalibration()
+    for name in LOCALIZERS.names():
+        cfg_type = LOCALIZERS.spec(name).config_type
+        assert issubclass(cfg_type, LocalizerConfig), name
+        loc = create(name, cal, initial_pose=(1.0, 2.0, 0.5), landmark_map={3: (1.0, 1.0)})
+        assert tuple(loc.config.initial_pose) == (1.0, 2.0, 0.5)
+        if issubclass(cfg_type, KnownMapConfig):
+            assert set(loc.config.landmark_map) == {3}
+        mapper = name in ("ekf-slam", "fastslam", "gtsam")
+        assert isinstance(loc, LandmarkMapper) == mapper, name
+        assert isinstance(loc, MapScorer) == (name in ("particle-filter", "grid-rbpf")), name
