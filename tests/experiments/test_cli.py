@@ -131,3 +131,111 @@ def test_a_localizer_without_observations_falls_back_and_says_so(tmp_path):
     assert len(lines) == 1 and "odometry only" in lines[0] and "odo.mcap" in lines[0], res.stderr
     metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
     assert "odometry only" in metrics["localizer_diagnostics"]["note"]
+
+
+# -- the front door, as a new user found it (issue 11) ---------------------------------
+
+
+@pytest.fixture(scope="module")
+def short_log(tmp_path_factory):
+    from experiments.run import simulate_trial
+
+    path = tmp_path_factory.mktemp("front") / "short.mcap"
+    simulate_trial("thesis-course", path, seed=1, duration_s=4.0)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("sets", "needles"),
+    [
+        (["gtsam.prior_sigma=1"], ["gtsam.prior_sigma", "3 values"]),
+        (["ekf-slam.noise=1"], ["ekf-slam.noise is a group", "noise.wheel_m"]),
+        (["gtsam.scan_matching=maybe"], ["gtsam.scan_matching", "maybe"]),
+        (["gtsam.nope=1"], ["no field 'nope'"]),
+    ],
+)
+def test_bad_settings_are_one_line_before_the_replay(short_log, tmp_path, sets, needles):
+    name = sets[0].split(".")[0]
+    args = [a for s in sets for a in ("--set", s)]
+    res = walkerslam("replay", short_log, "--localizer", name, "--out", tmp_path / "o", *args)
+    assert_one_line_error(res, *needles)
+    assert not (tmp_path / "o").exists()  # nothing was run
+
+
+def test_a_tuple_setting_is_taken_and_recorded(short_log, tmp_path):
+    res = walkerslam(
+        "replay", short_log, "--localizer", "gtsam", "--out", tmp_path / "o",
+        "--set", "gtsam.prior_sigma=0.1,0.1,0.05",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    cfg = json.loads((tmp_path / "o" / "config.json").read_text())
+    assert cfg["localizer_config"]["prior_sigma"] == [0.1, 0.1, 0.05]
+    assert cfg["localizer_overrides"] == {"prior_sigma": [0.1, 0.1, 0.05]}
+    # the trial's proposal (its encoders' noise) applied, and recorded
+    assert "noise.wheel_m" in cfg["source_localizer_settings"]
+    assert cfg["source_localizer_settings_skipped"] == {}
+
+
+def test_an_output_folder_that_is_a_file(short_log, tmp_path):
+    taken = tmp_path / "taken"
+    taken.write_text("not a folder")
+    res = walkerslam("replay", short_log, "--out", taken)
+    assert_one_line_error(res, "taken", "is a file")
+
+
+@pytest.mark.parametrize("duration", ["-5", "0"])
+def test_simulate_needs_a_positive_duration(tmp_path, duration):
+    out = tmp_path / "t.mcap"
+    res = walkerslam("simulate", "-o", out, "--duration", duration)
+    assert_one_line_error(res, "duration must be > 0")
+    assert not out.exists()
+
+
+def test_typer_usage_errors_are_one_line(tmp_path):
+    res = walkerslam("simulate", "-o", tmp_path / "t.mcap", "--seed", "abc")
+    assert_one_line_error(res, "--seed", "see walkerslam simulate --help")
+    assert_one_line_error(walkerslam("replay"), "Missing argument")
+    assert_one_line_error(walkerslam("nosuchcommand"), "nosuchcommand")
+
+
+def test_list_shows_a_configs_settings():
+    res = walkerslam("list", "gtsam")
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert any(ln.split()[:3] == ["gtsam.prior_sigma", "(0.001,", "0.001,"] for ln in lines), (
+        res.stdout
+    )
+    assert any("gtsam.noise.brake_aware" in ln and "bool" in ln for ln in lines)
+    assert "grid-rbpf" in walkerslam("list").stdout
+    assert_one_line_error(walkerslam("list", "nope"), "nope", "gtsam")
+
+
+def test_compare_table_is_not_cut_when_piped(short_log, tmp_path):
+    res = walkerslam(
+        "compare", short_log, "--localizers", "dead-reckoning,particle-filter", "--seeds", "1",
+        "--out", tmp_path / "c",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    assert "dead-reckoning" in res.stdout and "particle-filter" in res.stdout
+    assert "…" not in res.stdout
+
+
+def test_a_bug_keeps_its_traceback():
+    """Only a user's errors are one line: a bug in a command shows the whole traceback."""
+    code = (
+        "import sys; import experiments.cli as c; from experiments.cli_common import friendly;"
+        "f = friendly(lambda: 1 / 0); f()"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 1 and "Traceback" in res.stderr and "ZeroDivisionError" in res.stderr
+
+
+def test_replay_says_what_it_does_after_the_messages(short_log, tmp_path):
+    """The progress display shows the metrics and figures phases instead of stopping at
+    the end of the messages for seconds."""
+    from experiments.run import replay_log
+
+    phases, times = [], []
+    replay_log(short_log, tmp_path / "o", progress=times.append, phase=phases.append)
+    assert phases == ["metrics", "figures and files"]
+    assert times and times == sorted(times)
