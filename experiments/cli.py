@@ -610,9 +610,24 @@ def info(log: Annotated[Path, typer.Argument(help="trial log (.mcap)")]) -> None
         f"{'' if trial.complete else ' (incomplete: recovered)'}",
         highlight=False,
     )
+    from rich.markup import escape
+
+    heads = ("topic", "type", "messages", "rate [Hz]", "from [s]", "to [s]")
+    table = Table(*map(escape, heads), box=None)
     for topic, typ in sorted(trial.topics.items()):
-        console.print(f"  {topic:24s} {typ.__name__}")
-    console.print("metadata: " + ", ".join(sorted(trial.metadata)))
+        n, first, last = trial.topic_counts.get(topic, (0, 0.0, 0.0))
+        rate = f"{(n - 1) / (last - first):.1f}" if n > 1 and last > first else "—"
+        table.add_row(topic, typ.__name__, str(n), rate, f"{first:.2f}", f"{last:.2f}")
+    console.print(table)
+    cal = trial.calibration
+    console.print(
+        f"calibration: wheel {cal.wheel_diameter_m * 1e3:.1f} mm, track {cal.track_m:.3f} m, "
+        f"{cal.counts_per_rev} counts/rev, depth {cal.depth_intrinsics.width}x"
+        f"{cal.depth_intrinsics.height}, tags {cal.tag_family} {cal.tag_size_m} m",
+        highlight=False,
+        soft_wrap=True,
+    )
+    console.print("metadata: " + ", ".join(["calibration", *sorted(trial.metadata)]))
     cfg = trial.metadata.get("config")
     if cfg:
         console.print(json.dumps({k: v for k, v in cfg.items() if not isinstance(v, dict)}))

@@ -144,6 +144,13 @@ class TrialLog:
         ]
         #: number of messages (companions not counted)
         self.message_count = sum(c[0] for c in counts)
+        #: per readable topic: (messages, first log time [s], last log time [s])
+        self.topic_counts: dict[str, tuple[int, float, float]] = {
+            r.main_topic: (n, t0 / 1e9, t1 / 1e9)
+            for c, r in self._roles.items()
+            if r.reader.build and c in contents.counts
+            for n, t0, t1 in [contents.counts[c]]
+        }
         #: (first, last) log time [s], None if there are no messages
         self.time_range = (
             (min(c[1] for c in counts) / 1e9, max(c[2] for c in counts) / 1e9) if counts else None

@@ -239,3 +239,14 @@ def test_replay_says_what_it_does_after_the_messages(short_log, tmp_path):
     replay_log(short_log, tmp_path / "o", progress=times.append, phase=phases.append)
     assert phases == ["metrics", "figures and files"]
     assert times and times == sorted(times)
+
+
+def test_info_shows_each_topics_counts_and_the_calibration(short_log):
+    res = walkerslam("info", short_log)
+    assert res.returncode == 0, res.stderr
+    rows = {ln.split()[0]: ln.split() for ln in res.stdout.splitlines() if ln.startswith(" /")}
+    # 4 s of the simulator: encoders and ground truth at 50 Hz, depth and tags at 10 Hz
+    assert rows["/encoders"][1:4] == ["EncoderTicks", "201", "50.0"]
+    assert rows["/depth/image"][1:3] == ["DepthFrame", "41"]
+    assert "calibration: wheel 203.0 mm, track 0.640 m, 256 counts/rev" in res.stdout
+    assert res.stdout.count("calibration") >= 2  # and in the metadata list
