@@ -32,7 +32,7 @@ from hardware.messages import (
 )
 from hardware.source import CommandSink, TimedSource
 from mapping.mapper import MapperConfig, OccupancyMapper
-from slam.base import Localizer, MapScorer
+from slam.base import FrameConsumer, Localizer, MapScorer
 from slam.trajectory import Trajectory
 
 # Ground truth is used for the reference map only when it is this close in time.
@@ -101,6 +101,9 @@ class Pipeline:
         if math.isnan(rec.t_first):
             rec.t_first = msg.t
         rec.t_last = max(msg.t, rec.t_last) if not math.isnan(rec.t_last) else msg.t
+        if isinstance(msg, DepthFrame | LaserScan):
+            self._frame(msg)
+            return
         self.localizer.process(msg)
         if isinstance(msg, GroundTruthPose):
             self._latest_truth = msg
@@ -110,25 +113,21 @@ class Pipeline:
             rec.commands.append(msg)
         elif isinstance(msg, Collision):
             rec.collisions.append(msg)
-        elif isinstance(msg, DepthFrame | LaserScan):
-            key = msg.t if self._keep_frames else None
-            self._integrate(self.mapper, msg, self.localizer.estimate().pose, key)
-            truth = self._latest_truth
-            if (
-                self.reference is not None
-                and truth
-                and abs(truth.t - msg.t) <= GROUNDTRUTH_TOLERANCE_S
-            ):
-                self._integrate(self.reference, msg, np.array([truth.x, truth.y, truth.theta]))
 
-    @staticmethod
-    def _integrate(
-        mapper: OccupancyMapper, msg: DepthFrame | LaserScan, pose: np.ndarray, key=None
-    ) -> None:
-        if isinstance(msg, DepthFrame):
-            mapper.integrate_depth(msg, pose, key=key)
+    def _frame(self, msg: DepthFrame | LaserScan) -> None:
+        """A depth frame or scan, projected once: to the localizer, then into the map at
+        its (updated) pose and into the reference map at the true pose."""
+        projection = self.mapper.project(msg)
+        if isinstance(self.localizer, FrameConsumer):
+            self.localizer.process_frame(msg, projection)
         else:
-            mapper.integrate_scan(msg, pose, key=key)
+            self.localizer.process(msg)
+        key = msg.t if self._keep_frames else None
+        self.mapper.integrate_projection(projection, self.localizer.estimate().pose, key)
+        truth = self._latest_truth
+        if self.reference is not None and truth and abs(truth.t - msg.t) <= GROUNDTRUTH_TOLERANCE_S:
+            pose = np.array([truth.x, truth.y, truth.theta])
+            self.reference.integrate_projection(projection, pose)
 
     def rebuild_map(self, background: bool = False) -> bool:
         """Re-map the kept frames at the localizer's current (smoothed) trajectory, when it

@@ -91,6 +91,17 @@ def warm_up() -> None:
         mapper.rebuild()
 
 
+@dataclass(frozen=True, eq=False)
+class Projection:
+    """One frame projected onto the floor plane (walker frame): `raw` its points as
+    projected (a laser scan's own end points; a depth frame's, already on the mapper's
+    lattice), `compact` what a map integrates (snapped to the lattice, duplicates
+    dropped)."""
+
+    raw: PlanarObservation
+    compact: PlanarObservation
+
+
 @dataclass(eq=False)
 class RebuildJob:
     """A map rebuild running in a thread (`OccupancyMapper.start_rebuild`)."""
@@ -136,17 +147,38 @@ class OccupancyMapper:
         """World centres (N×2) of the occupied cells (the grid's default threshold)."""
         return self._grid.occupied_xy(threshold)
 
+    def project(
+        self,
+        frame: DepthFrame | LaserScan,
+        sensor_offset: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 0.0),
+    ) -> Projection:
+        """A depth frame's or laser scan's evidence as this mapper integrates it (its
+        depth / scan config and point lattice), once per frame: the pipeline hands the
+        same projection to the localizer and the mappers. sensor_offset: (x, y, yaw) of a
+        laser on the walker."""
+        if isinstance(frame, DepthFrame):
+            view = self._views.get(frame.intrinsics)
+            if view is None:
+                view = self._views[frame.intrinsics] = self._view_wedge(frame.intrinsics)
+            obs = project_depth_frame(
+                frame, self.calibration, self.config.depth, view, quantum=self._quantum
+            )
+            return Projection(obs, obs)
+        raw = scan_to_observation(frame, sensor_offset, self.config.scan)
+        return Projection(raw, raw.compacted(self._quantum))
+
+    def integrate_projection(
+        self, projection: Projection, pose: np.ndarray, key: Hashable | None = None
+    ) -> None:
+        """Add a frame projected by `project` (this mapper's or one of the same config)
+        at the walker pose (x, y, θ)."""
+        self._integrate_compact(projection.compact, pose, key)
+
     def integrate_depth(
         self, frame: DepthFrame, world_T_walker: np.ndarray, key: Hashable | None = None
     ) -> None:
         """Add a depth frame taken at the walker pose (x, y, θ)."""
-        view = self._views.get(frame.intrinsics)
-        if view is None:
-            view = self._views[frame.intrinsics] = self._view_wedge(frame.intrinsics)
-        obs = project_depth_frame(
-            frame, self.calibration, self.config.depth, view, quantum=self._quantum
-        )
-        self._integrate_compact(obs, world_T_walker, key)
+        self.integrate_projection(self.project(frame), world_T_walker, key)
 
     def _view_wedge(self, intrinsics: CameraIntrinsics) -> ViewWedge:
         """The depth camera's view wedge (config.view_*; half FOV from the intrinsics)."""
@@ -166,8 +198,7 @@ class OccupancyMapper:
 
         sensor_offset = (x, y, yaw) of the laser on the walker.
         """
-        obs = scan_to_observation(scan, sensor_offset, self.config.scan)
-        self.integrate_observation(obs, pose, key)
+        self.integrate_projection(self.project(scan, sensor_offset), pose, key)
 
     def integrate_observation(
         self, obs: PlanarObservation, pose: np.ndarray, key: Hashable | None = None

@@ -16,6 +16,7 @@ from slam.trajectory import Trajectory
 
 __all__ = [
     "LOCALIZERS",
+    "FrameConsumer",
     "KnownMapConfig",
     "LandmarkMapper",
     "Localizer",
@@ -89,6 +90,15 @@ class LandmarkMapper(Protocol):
     def landmarks(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """{landmark id: (mean (x, y), 2×2 covariance)} in the map frame."""
         ...
+
+
+@runtime_checkable
+class FrameConsumer(Protocol):
+    """A localizer that uses depth frames or laser scans: the pipeline projects each frame
+    once (`mapping.mapper.OccupancyMapper.project`) and hands the same projection to it
+    and to the mappers, instead of `process(msg)`."""
+
+    def process_frame(self, msg: Message, projection: Any) -> None: ...
 
 
 @runtime_checkable

@@ -47,10 +47,8 @@ from hardware.calibration import WalkerCalibration
 from hardware.geometry import wrap_angle
 from hardware.messages import DepthFrame, LaserScan
 from hardware.registry import Spec
-from mapping.depth_points import project_depth_frame
 from mapping.grid import GridExtent, HitCentroidGrid, make_grid
-from mapping.mapper import MapperConfig
-from mapping.scan_points import scan_to_observation
+from mapping.mapper import MapperConfig, OccupancyMapper, Projection
 from slam.base import KnownMapConfig, PoseEstimate
 from slam.grid_kernels import frame_log_likelihood, hill_climb, poses_log_likelihood
 from slam.measurement import BEARING_SIGMA_RAD, RANGE_SIGMA_FRAC, RANGE_SIGMA_M
@@ -179,6 +177,7 @@ class GridRbpf(ParticleFilter):
         # the score reads log-odds and the cells' hit centroids
         grid_cfg = replace(self._map_config.grid, model="log-odds-hits")
         self._map_config = replace(self._map_config, grid=grid_cfg)
+        self._projector = None
         empty = make_grid(grid_cfg)
         self._maps = [empty] * len(self.particles)
 
@@ -187,18 +186,12 @@ class GridRbpf(ParticleFilter):
         self.paths.resampled(parents)
         self.corrections.resampled(parents)
 
-    def _observation(self, msg: DepthFrame | LaserScan):
-        """(the frame as the maps integrate it: compacted as the mapper does, the frame
-        whose points are scored: a laser scan's own end points, a depth frame's compacted
-        ones)."""
-        cfg = self._map_config
-        q = cfg.point_quantum_m
-        quantum = cfg.grid.resolution_m / 4.0 if q is None else q
-        if isinstance(msg, DepthFrame):
-            obs = project_depth_frame(msg, self.calibration, cfg.depth, quantum=quantum)
-            return obs, obs
-        raw = scan_to_observation(msg, (0.0, 0.0, 0.0), cfg.scan)
-        return raw.compacted(quantum), raw
+    def _project(self, msg: DepthFrame | LaserScan) -> Projection:
+        """A frame given to `process` (no pipeline): projected as the particles' maps are
+        configured (the attached mapper's settings)."""
+        if self._projector is None:
+            self._projector = OccupancyMapper(self.calibration, self._map_config)
+        return self._projector.project(msg)
 
     def _integrate(self, obs) -> None:
         """The frame into every particle's map at its pose, copying shared maps first."""
@@ -215,12 +208,14 @@ class GridRbpf(ParticleFilter):
             grid.integrate(obs.in_world(pose), centre_xy=pose[:2])
 
     # -- frames ---------------------------------------------------------------------------
-    def _observe_frame(self, msg: DepthFrame | LaserScan) -> None:
+    def _observe_frame(self, msg: DepthFrame | LaserScan, projection: Projection) -> None:
+        """The frame's scan match per particle: scored with its points as projected (a
+        laser scan's own end points), integrated compacted (as the mapper does)."""
         c = self.config
         if self._moved[0] < c.scan_every_m and self._moved[1] < c.scan_every_rad:
             return
-        obs, scored_obs = self._observation(msg)
-        points = self._scoring_points(scored_obs)
+        obs = projection.compact
+        points = self._scoring_points(projection.raw)
         prior = self._prior_cov()
         steps = np.array([c.match_fit_step_m, c.match_fit_step_m, c.match_fit_step_rad])
         log_volume = float(np.log(steps).sum()) - 1.5 * math.log(2.0 * math.pi)

@@ -76,8 +76,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.geometry import wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
-from mapping.depth_points import DepthConfig, project_depth_frame
-from mapping.scan_points import ScanConfig, scan_to_observation
+from mapping.mapper import OccupancyMapper, Projection
 from slam.base import KnownMapConfig, Localizer, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
@@ -276,6 +275,7 @@ class ParticleFilter(Localizer):
         self.odometry = OdometryModel(calibration, config.noise)
         self.rng = np.random.default_rng(config.seed)
         self.map_source: Any = None
+        self._projector: OccupancyMapper | None = None  # frames given without the pipeline
         n = config.n_particles
         self.particles = np.array(config.initial_pose, dtype=float) + self.rng.standard_normal(
             (n, 3)
@@ -338,9 +338,24 @@ class ParticleFilter(Localizer):
         elif (obs := landmark_observation(msg, self.calibration)) is not None:
             self._observe_landmarks(obs)
         elif isinstance(msg, DepthFrame | LaserScan):
-            self._observe_frame(msg)
+            self._observe_frame(msg, self._project(msg))
         if not self.track and self.odometry.has_odometry:
             self._record(msg.t)
+
+    def process_frame(self, msg: DepthFrame | LaserScan, projection: Projection) -> None:
+        """A frame the pipeline projected already (as its mapper does)."""
+        self._observe_frame(msg, projection)
+        if not self.track and self.odometry.has_odometry:
+            self._record(msg.t)
+
+    def _project(self, msg: DepthFrame | LaserScan) -> Projection:
+        """A frame given to `process` (no pipeline): projected as the attached mapper
+        projects it, or with the mapper's defaults."""
+        if isinstance(self.map_source, OccupancyMapper):
+            return self.map_source.project(msg)
+        if self._projector is None:
+            self._projector = OccupancyMapper(self.calibration)
+        return self._projector.project(msg)
 
     def _predict(self, inc: Increment) -> None:
         self._maybe_resample()
@@ -390,7 +405,7 @@ class ParticleFilter(Localizer):
         self.counts["landmark_updates"] += 1
         self.counts["landmark_observations"] += len(rows)
 
-    def _observe_frame(self, msg: DepthFrame | LaserScan) -> None:
+    def _observe_frame(self, msg: DepthFrame | LaserScan, projection: Projection) -> None:
         c = self.pf
         if not c.use_scans or self.map_source is None:
             return
@@ -403,7 +418,7 @@ class ParticleFilter(Localizer):
         if f is None:
             self._draw_odometry_noise()
             return  # the map is still (nearly) empty
-        points = self._frame_points(msg)
+        points = self._points_in_range(projection.raw)
         # Only the points that land in mapped cells at the mean pose are scored, for every
         # particle alike: a point in unmapped space says nothing, and scoring it would
         # favour the particles that pull the frame's new parts onto what is already mapped.
@@ -465,18 +480,6 @@ class ParticleFilter(Localizer):
         self.particles = sample_gaussians(mu, cov, self.rng)
         self._reset_odometry()
         self._update(log_eta, t)
-
-    def _frame_points(self, msg: DepthFrame | LaserScan) -> np.ndarray:
-        """Up to max_beams obstacle points (K×2, walker frame) of a frame, within range,
-        projected as the map source's mapper projects them (its depth / scan config)."""
-        mapper_cfg = getattr(self.map_source, "config", None)
-        if isinstance(msg, DepthFrame):
-            depth_cfg = getattr(mapper_cfg, "depth", None) or DepthConfig()
-            obs = project_depth_frame(msg, self.calibration, depth_cfg)
-        else:
-            scan_cfg = getattr(mapper_cfg, "scan", None) or ScanConfig()
-            obs = scan_to_observation(msg, (0.0, 0.0, 0.0), scan_cfg)
-        return self._points_in_range(obs)
 
     def _points_in_range(self, obs) -> np.ndarray:
         """Up to max_beams of an observation's obstacle points within max_range_m of its
