@@ -234,17 +234,19 @@ def checked(build, what: str):
         raise ConfigError(f"{what}: {e}") from None
 
 
-def describe(config_type: type | None, prefix: str = "") -> list[tuple[str, str, str]]:
+def describe(
+    config_type: type | None, prefix: str = "", defaults: Any = None
+) -> list[tuple[str, str, str]]:
     """(field path, default, type) of every setting of a config, nested groups
     flattened (what `walkerslam list NAME` shows)."""
     if config_type is None:
         return []
     out = []
-    defaults = config_type()
+    defaults = config_type() if defaults is None else defaults
     for name, typ in _field_types(config_type).items():
         value = getattr(defaults, name)
         if dataclasses.is_dataclass(typ):
-            out += [(f"{prefix}{name}.{p}", d, t) for p, d, t in describe(typ)]
+            out += [(f"{prefix}{name}.{p}", d, t) for p, d, t in describe(typ, "", value)]
             continue
         shown = value.value if isinstance(value, enum.Enum) else value
         out.append((f"{prefix}{name}", repr(shown), _type_name(typ)))

@@ -18,30 +18,30 @@ Scan matching (`scan_matching=True`, off by default). Laser scans (`LaserScan`, 
 the laser's mount `laser_offset` on the walker) and depth frames (`DepthFrame`: the
 obstacle band flattened to the floor, `mapping.depth_points`) become 2-D point sets in
 the walker frame (`slam.scan_matching`). A scan is kept when the walker has moved
-`scan_keyframe_distance_m` or turned `scan_keyframe_angle_rad` (odometry) since the
+`scan.keyframe_distance_m` or turned `scan.keyframe_angle_rad` (odometry) since the
 last kept scan; a keyframe then starts at the scan's own time, so each kept scan sits
 exactly on its keyframe (one scan per keyframe, no odometry offset between them).
 Each kept scan is matched
 
-- sequentially against the previous `scan_submap_size` kept scans, placed in the frame
+- sequentially against the previous `scan.submap_size` kept scans, placed in the frame
   of the previous one by the current estimate (a local submap), starting from the
-  odometry and searching ± `scan_window_sigmas` odometry standard deviations (clipped to
-  `scan_window_xy_m`, `scan_window_theta_rad`) → `BetweenFactorPose2` previous → current
-  with the match's covariance (robust: `scan_robust`, `scan_robust_k`), in addition to
-  the odometry factors; accepted when its inlier fraction ≥ `scan_min_inlier_fraction`,
-  conflict fraction ≤ `scan_max_conflict_fraction` and ambiguity ≤
-  `scan_max_ambiguity` (`slam.scan_matching.MatchResult`);
-- for loop closures against older kept scans (at least `loop_min_separation` kept scans
-  back) within `loop_search_radius_m` plus the search window of the current estimate.
-  The `loop_max_candidates` nearest (one per stretch of neighbouring scans) are tried,
-  each against a submap of the candidate and its `loop_submap_half` neighbours either
-  side, searching ± `loop_window_sigmas` standard deviations of the *relative* pose
-  (from iSAM2's joint marginal of the two keyframes; clipped to `loop_window_xy_m`,
-  `loop_window_theta_rad`). A match that passes the `loop_*` thresholds and whose
-  disagreement with the estimate passes a chi-squared gate (`loop_gate_chi2` on the
+  odometry and searching ± `scan.gate.window_sigmas` odometry standard deviations (clipped to
+  `scan.gate.window_xy_m`, `scan.gate.window_theta_rad`) → `BetweenFactorPose2` previous → current
+  with the match's covariance (robust: `scan.gate.robust`, `scan.gate.robust_k`), in addition to
+  the odometry factors; accepted when its inlier fraction ≥ `scan.gate.min_inlier_fraction`,
+  conflict fraction ≤ `scan.gate.max_conflict_fraction` and ambiguity ≤
+  `scan.gate.max_ambiguity` (`slam.scan_matching.MatchResult`);
+- for loop closures against older kept scans (at least `loop.min_separation` kept scans
+  back) within `loop.search_radius_m` plus the search window of the current estimate.
+  The `loop.max_candidates` nearest (one per stretch of neighbouring scans) are tried,
+  each against a submap of the candidate and its `loop.submap_half` neighbours either
+  side, searching ± `loop.gate.window_sigmas` standard deviations of the *relative* pose
+  (from iSAM2's joint marginal of the two keyframes; clipped to `loop.gate.window_xy_m`,
+  `loop.gate.window_theta_rad`). A match that passes the `loop.gate` thresholds and whose
+  disagreement with the estimate passes a chi-squared gate (`loop.gate_chi2` on the
   relative covariance plus the match's; 16.27 = 99.9 % for 3 degrees of freedom)
-  becomes a `BetweenFactorPose2` with a robust noise model (`loop_robust`,
-  `loop_robust_k`); after loop closures iSAM2 runs `loop_extra_updates` more updates.
+  becomes a `BetweenFactorPose2` with a robust noise model (`loop.gate.robust`,
+  `loop.gate.robust_k`); after loop closures iSAM2 runs `loop.extra_updates` more updates.
 
 Huber is the default robust kernel for both kinds: it is convex, so a correct loop
 closure whose residual is large at first (the drift it corrects is many of its own
@@ -107,6 +107,77 @@ OBSERVATIONS = ("range-bearing", "tag-pose")
 
 
 @dataclass(frozen=True)
+class MatchGate:
+    """How a scan match is searched for and accepted (module docstring): searched ±
+    window_sigmas standard deviations of the prior (odometry, or the joint marginal for a
+    loop), clipped to window_xy_m and window_theta_rad (min, max); accepted when its
+    inlier fraction ≥ min_inlier_fraction, conflict fraction ≤ max_conflict_fraction and
+    ambiguity ≤ max_ambiguity (slam.scan_matching.MatchResult); its factor robust with
+    `robust` ("huber", "cauchy", "none") at robust_k."""
+
+    window_sigmas: float = 3.0
+    window_xy_m: tuple[float, float] = (0.1, 0.5)
+    window_theta_rad: tuple[float, float] = (0.05, 0.35)
+    min_inlier_fraction: float = 0.3
+    max_conflict_fraction: float = 0.2
+    max_ambiguity: float = 0.9
+    robust: str = "huber"
+    robust_k: float = 1.345
+
+    def __post_init__(self) -> None:
+        if self.robust not in ROBUST_KERNELS:
+            raise ValueError(f"robust must be one of {ROBUST_KERNELS}, got {self.robust!r}")
+
+
+@dataclass(frozen=True)
+class SequentialScans:
+    """Sequential scan matching: max_range_m / min_range_m: laser returns used as points
+    (SICK LMS: reliable to ~20 m; the walker's own frame can be cut with a minimum);
+    keyframe_distance_m / keyframe_angle_rad: when a scan is kept; submap_size: the
+    kept scans a new one is matched to; gate: the match's search and acceptance."""
+
+    max_range_m: float = 20.0
+    min_range_m: float = 0.0
+    keyframe_distance_m: float = 0.3
+    keyframe_angle_rad: float = 0.2
+    submap_size: int = 3
+    gate: MatchGate = field(default_factory=MatchGate)
+
+    def __post_init__(self) -> None:
+        if self.submap_size < 1:
+            raise ValueError(f"submap_size must be >= 1, got {self.submap_size}")
+
+
+@dataclass(frozen=True)
+class LoopClosures:
+    """Loop closures: enabled; a candidate is a kept scan within search_radius_m (plus
+    the search window) at least min_separation keyframes back, at most max_candidates
+    per scan, matched to a submap of ± submap_half scans around it through `gate`, and
+    kept when its disagreement with the estimate passes gate_chi2 (0: no gate); after
+    loop closures iSAM2 runs extra_updates more updates."""
+
+    enabled: bool = True
+    search_radius_m: float = 2.0
+    min_separation: int = 10
+    max_candidates: int = 3
+    submap_half: int = 2
+    gate: MatchGate = field(
+        default_factory=lambda: MatchGate(
+            window_xy_m=(0.3, 1.5),
+            window_theta_rad=(0.1, 0.5),
+            min_inlier_fraction=0.5,
+            max_conflict_fraction=0.1,
+        )
+    )
+    gate_chi2: float = 16.27
+    extra_updates: int = 2
+
+    def __post_init__(self) -> None:
+        if self.min_separation < 1:
+            raise ValueError(f"min_separation must be >= 1, got {self.min_separation}")
+
+
+@dataclass(frozen=True)
 class GtsamConfig(LocalizerConfig):
     """iSAM2 smoother settings.
 
@@ -127,10 +198,9 @@ class GtsamConfig(LocalizerConfig):
     Scan matching (module docstring): scan_matching switches it on; scan_match: the
     matcher's settings (slam.scan_matching.ScanMatchConfig); laser_offset: the laser's
     (x, y, yaw) on the walker (the CARMEN logs' front laser sits at the robot centre:
-    Intel's robot_frontlaser_offset is 0); scan_max_range_m / scan_min_range_m: laser
-    returns used as points (SICK LMS: reliable to ~20 m; the walker's own frame can be
-    cut with a minimum); scan_keyframe_*: when a scan is kept; scan_*: sequential
-    matching; loop_*: loop closures.
+    Intel's robot_frontlaser_offset is 0); scan (SequentialScans): which scans are kept
+    and how each is matched to the ones before it; loop (LoopClosures): loop closures;
+    both accept a match through a MatchGate.
     """
 
     prior_sigma: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
@@ -157,37 +227,11 @@ class GtsamConfig(LocalizerConfig):
     scan_matching: bool = False
     scan_match: ScanMatchConfig = field(default_factory=ScanMatchConfig)
     laser_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    scan_max_range_m: float = 20.0
-    scan_min_range_m: float = 0.0
-    scan_keyframe_distance_m: float = 0.3
-    scan_keyframe_angle_rad: float = 0.2
-    scan_submap_size: int = 3
-    scan_window_sigmas: float = 3.0
-    scan_window_xy_m: tuple[float, float] = (0.1, 0.5)
-    scan_window_theta_rad: tuple[float, float] = (0.05, 0.35)
-    scan_min_inlier_fraction: float = 0.3
-    scan_max_conflict_fraction: float = 0.2
-    scan_max_ambiguity: float = 0.9
-    scan_robust: str = "huber"
-    scan_robust_k: float = 1.345
+    scan: SequentialScans = field(default_factory=lambda: SequentialScans())
     odometry_adaptive: bool = True
     odometry_adaptive_min_matches: int = 10
     odometry_adaptive_range: tuple[float, float] = (0.1, 100.0)
-    loop_closure: bool = True
-    loop_search_radius_m: float = 2.0
-    loop_min_separation: int = 10
-    loop_max_candidates: int = 3
-    loop_submap_half: int = 2
-    loop_window_sigmas: float = 3.0
-    loop_window_xy_m: tuple[float, float] = (0.3, 1.5)
-    loop_window_theta_rad: tuple[float, float] = (0.1, 0.5)
-    loop_min_inlier_fraction: float = 0.5
-    loop_max_conflict_fraction: float = 0.1
-    loop_max_ambiguity: float = 0.9
-    loop_gate_chi2: float = 16.27
-    loop_robust: str = "huber"
-    loop_robust_k: float = 1.345
-    loop_extra_updates: int = 2
+    loop: LoopClosures = field(default_factory=lambda: LoopClosures())
 
     def __post_init__(self) -> None:
         if self.observation not in OBSERVATIONS:
@@ -202,11 +246,6 @@ class GtsamConfig(LocalizerConfig):
             )
         if self.factorization not in ("QR", "CHOLESKY"):
             raise ValueError(f"factorization must be QR or CHOLESKY, got {self.factorization!r}")
-        for name in ("scan_robust", "loop_robust"):
-            if getattr(self, name) not in ROBUST_KERNELS:
-                raise ValueError(f"{name} must be one of {ROBUST_KERNELS}")
-        if self.scan_submap_size < 1 or self.loop_min_separation < 1:
-            raise ValueError("scan_submap_size and loop_min_separation must be >= 1")
 
 
 @dataclass(eq=False)
@@ -449,16 +488,16 @@ class GtsamSmoother(Localizer):
         c = self.config
         voxel = c.scan_match.voxel_m
         if isinstance(msg, LaserScan):
-            return laser_points(msg, c.laser_offset, c.scan_max_range_m, c.scan_min_range_m, voxel)
-        return depth_points(msg, self.calibration, voxel_m=voxel, min_range_m=c.scan_min_range_m)
+            return laser_points(msg, c.laser_offset, c.scan.max_range_m, c.scan.min_range_m, voxel)
+        return depth_points(msg, self.calibration, voxel_m=voxel, min_range_m=c.scan.min_range_m)
 
     def _scan(self, msg: LaserScan | DepthFrame) -> None:
         c = self.config
         if self._kf < 0:
             return
         if self._scans and not (
-            math.hypot(self._scan_delta[0], self._scan_delta[1]) >= c.scan_keyframe_distance_m
-            or abs(self._scan_delta[2]) >= c.scan_keyframe_angle_rad
+            math.hypot(self._scan_delta[0], self._scan_delta[1]) >= c.scan.keyframe_distance_m
+            or abs(self._scan_delta[2]) >= c.scan.keyframe_angle_rad
         ):
             return
         t0 = time.perf_counter()
@@ -478,7 +517,7 @@ class GtsamSmoother(Localizer):
         if prev is not None and prev.kf != self._kf:
             poses = self._poses()
             self._sequential(poses, *odo)
-            if c.loop_closure and len(self._scans) > c.loop_min_separation:
+            if c.loop.enabled and len(self._scans) > c.loop.min_separation:
                 self._loop_closures(self._poses())
         self.counts["scan_matching_s"] += time.perf_counter() - t0
 
@@ -504,17 +543,21 @@ class GtsamSmoother(Localizer):
         c = self.config
         n = len(self._scans)
         prev, cur = self._scans[-2], self._scans[-1]
-        ref = self._submap(poses, range(max(0, n - 1 - c.scan_submap_size), n - 1), prev.kf)
+        ref = self._submap(poses, range(max(0, n - 1 - c.scan.submap_size), n - 1), prev.kf)
         model = odo_cov + keyframes * np.diag(np.square(c.odometry_sigma_floor))
         sd = np.sqrt(np.maximum(np.diag(model), 0.0)) * self._odo_scale
-        wxy = float(np.clip(c.scan_window_sigmas * max(sd[0], sd[1]), *c.scan_window_xy_m))
-        wth = float(np.clip(c.scan_window_sigmas * sd[2], *c.scan_window_theta_rad))
+        wxy = float(
+            np.clip(c.scan.gate.window_sigmas * max(sd[0], sd[1]), *c.scan.gate.window_xy_m)
+        )
+        wth = float(np.clip(c.scan.gate.window_sigmas * sd[2], *c.scan.gate.window_theta_rad))
         guess = relative_guess(poses[prev.kf], poses[cur.kf])
         res = match(ref, cur.scan, guess, wxy, wth, c.scan_match)
         if res.accepted(
-            c.scan_min_inlier_fraction, c.scan_max_conflict_fraction, c.scan_max_ambiguity
+            c.scan.gate.min_inlier_fraction,
+            c.scan.gate.max_conflict_fraction,
+            c.scan.gate.max_ambiguity,
         ):
-            self._add_match(prev.kf, cur.kf, res, c.scan_robust, c.scan_robust_k)
+            self._add_match(prev.kf, cur.kf, res, c.scan.gate.robust, c.scan.gate.robust_k)
             self.counts["scan_factors"] += 1
             self._flush()
             if c.odometry_adaptive and res.constraint >= c.scan_match.degenerate_constraint:
@@ -563,17 +606,19 @@ class GtsamSmoother(Localizer):
         # relative one) ...
         marginal = self.isam.marginalCovariance(X(cur.kf))
         sxy = math.sqrt(max(float(np.linalg.eigvalsh(marginal[:2, :2])[-1]), 0.0))
-        reach = c.loop_search_radius_m + min(c.loop_window_sigmas * sxy, c.loop_window_xy_m[1])
-        old = np.arange(n - c.loop_min_separation)
+        reach = c.loop.search_radius_m + min(
+            c.loop.gate.window_sigmas * sxy, c.loop.gate.window_xy_m[1]
+        )
+        old = np.arange(n - c.loop.min_separation)
         kfs = np.array([self._scans[i].kf for i in old])
         dist = np.hypot(*(poses[kfs, :2] - here[:2]).T)
         near = old[dist <= reach]
         order = near[np.argsort(dist[near])]
         chosen: list[int] = []
         for i in order.tolist():
-            if all(abs(i - j) > 2 * c.loop_submap_half for j in chosen):
+            if all(abs(i - j) > 2 * c.loop.submap_half for j in chosen):
                 chosen.append(i)
-                if len(chosen) >= c.loop_max_candidates:
+                if len(chosen) >= c.loop.max_candidates:
                     break
         added = 0
         for i in chosen:
@@ -583,36 +628,38 @@ class GtsamSmoother(Localizer):
             rel_cov = self._relative_covariance(cand.kf, cur.kf, guess)
             sxy = math.sqrt(max(float(np.linalg.eigvalsh(rel_cov[:2, :2])[-1]), 0.0))
             sth = math.sqrt(max(float(rel_cov[2, 2]), 0.0))
-            wxy = float(np.clip(c.loop_window_sigmas * sxy, *c.loop_window_xy_m))
-            wth = float(np.clip(c.loop_window_sigmas * sth, *c.loop_window_theta_rad))
-            if dist[i] > c.loop_search_radius_m + wxy:
+            wxy = float(np.clip(c.loop.gate.window_sigmas * sxy, *c.loop.gate.window_xy_m))
+            wth = float(np.clip(c.loop.gate.window_sigmas * sth, *c.loop.gate.window_theta_rad))
+            if dist[i] > c.loop.search_radius_m + wxy:
                 continue
             lo, hi = (
-                max(0, i - c.loop_submap_half),
-                min(n - c.loop_min_separation, i + c.loop_submap_half + 1),
+                max(0, i - c.loop.submap_half),
+                min(n - c.loop.min_separation, i + c.loop.submap_half + 1),
             )
             ref = self._submap(poses, range(lo, hi), cand.kf)
             res = match(ref, cur.scan, guess, wxy, wth, c.scan_match)
             self.counts["loop_candidates"] += 1
             ok = res.accepted(
-                c.loop_min_inlier_fraction, c.loop_max_conflict_fraction, c.loop_max_ambiguity
+                c.loop.gate.min_inlier_fraction,
+                c.loop.gate.max_conflict_fraction,
+                c.loop.gate.max_ambiguity,
             )
-            if ok and c.loop_gate_chi2 > 0:
+            if ok and c.loop.gate_chi2 > 0:
                 # consistent with the estimate and its uncertainty (chi-squared gate)
                 d = relative_guess(guess, res.pose)
                 s_ = rel_cov + _body_covariance(res.covariance, res.pose[2])
-                ok = float(d @ np.linalg.solve(s_, d)) <= c.loop_gate_chi2
+                ok = float(d @ np.linalg.solve(s_, d)) <= c.loop.gate_chi2
                 if not ok:
                     self.counts["loop_gated"] += 1
             if ok:
-                self._add_match(cand.kf, cur.kf, res, c.loop_robust, c.loop_robust_k)
+                self._add_match(cand.kf, cur.kf, res, c.loop.gate.robust, c.loop.gate.robust_k)
                 self.counts["loop_closures"] += 1
                 added += 1
             else:
                 self.counts["loop_rejected"] += 1
         if added:
             self._flush()
-            for _ in range(c.loop_extra_updates):
+            for _ in range(c.loop.extra_updates):
                 self.isam.update()
             self._after_update()
 

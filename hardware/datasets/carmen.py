@@ -744,7 +744,7 @@ def carmen_localizer_settings(n_beams: int) -> dict[str, Any]:
         "noise.velocity_model": "distance",
         "max_range_m": USABLE_RANGE_M,
         "max_beams": int(n_beams),
-        "scan_max_range_m": USABLE_RANGE_M,
+        "scan.max_range_m": USABLE_RANGE_M,
         "scan_matching": True,
         "use_scans": True,
     }
