@@ -19,6 +19,7 @@ import numpy as np
 from control.base import ControlInput, Controller
 from control.safety import SafeController, SafetyConfig
 from hardware.calibration import WalkerCalibration
+from hardware.choices import Choice, coerce
 from hardware.errors import ConfigError
 from hardware.messages import (
     BrakeCommand,
@@ -191,6 +192,13 @@ class VelocityEstimator:
         return v, omega
 
 
+class Trigger(Choice):
+    """When the closed loop runs its controller (LoopConfig)."""
+
+    TIMER = "timer"
+    FRAME = "frame"
+
+
 @dataclass(frozen=True)
 class LoopConfig:
     """Closed-loop timing.
@@ -216,12 +224,11 @@ class LoopConfig:
     latency_s: float = 0.03
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     map_rebuild_s: float = 10.0
-    trigger: str = "timer"
+    trigger: Trigger = Trigger.TIMER
     rebuild_in_background: bool = False
 
     def __post_init__(self) -> None:
-        if self.trigger not in ("timer", "frame"):
-            raise ConfigError(f"trigger must be 'timer' or 'frame', got {self.trigger!r}")
+        coerce(self, trigger=Trigger)
         if not self.rate_hz > 0 or self.latency_s < 0:
             raise ConfigError("LoopConfig needs rate_hz > 0 and latency_s >= 0")
 

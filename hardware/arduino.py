@@ -58,6 +58,7 @@ import serial
 
 from hardware import board_protocol as bp
 from hardware.calibration import WalkerCalibration
+from hardware.choices import Choice, coerce
 from hardware.clock import ClockMap, HostClock
 from hardware.errors import DeviceError
 from hardware.messages import BrakeCommand, DeviceEvent, EncoderTicks, Message
@@ -65,6 +66,13 @@ from hardware.messages import BrakeCommand, DeviceEvent, EncoderTicks, Message
 
 class BoardError(DeviceError):
     """The board cannot be used (port missing, no handshake, wrong firmware); one line."""
+
+
+class GapMotion(Choice):
+    """What the counts moved across a gap in the stream: dropped (rebased) or kept."""
+
+    DROP = "drop"
+    KEEP = "keep"
 
 
 @dataclass(frozen=True)
@@ -95,11 +103,10 @@ class BoardConfig:
     rate_hz: int | None = None
     reset_on_open: bool = False
     check_cpr: bool = True
-    gap_motion: str = "drop"
+    gap_motion: GapMotion = GapMotion.DROP
 
     def __post_init__(self) -> None:
-        if self.gap_motion not in ("drop", "keep"):
-            raise ValueError(f"gap_motion must be 'drop' or 'keep', got {self.gap_motion!r}")
+        coerce(self, gap_motion=GapMotion)
         if not self.resend_hz >= 1.0 / bp.COMMAND_TIMEOUT_S * 2:
             raise ValueError(
                 f"resend_hz must be >= {2 / bp.COMMAND_TIMEOUT_S:.1f} (twice per board "

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
+from hardware.choices import Choice, coerce
 from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
@@ -32,6 +33,13 @@ from slam.measurement import (
 from slam.motion import Cov3, MotionNoise, OdometryModel, propagate
 from slam.rts import arc_steps, rts_smooth
 from slam.trajectory import Trajectory, TrajectoryRecorder
+
+
+class EkfSmoother(Choice):
+    """The EKF's trajectory: Rauch–Tung–Striebel smoothed over the whole run, or filtered."""
+
+    RTS = "rts"
+    NONE = "none"
 
 
 @dataclass(frozen=True)
@@ -54,16 +62,10 @@ class EkfSlamConfig(LocalizerConfig):
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     gate_chi2: float = 13.8
-    smoother: str = "rts"
+    smoother: EkfSmoother = EkfSmoother.RTS
 
     def __post_init__(self) -> None:
-        if self.smoother not in SMOOTHERS:
-            raise ValueError(
-                f"smoother must be one of {', '.join(SMOOTHERS)}, got {self.smoother!r}"
-            )
-
-
-SMOOTHERS = ("rts", "none")
+        coerce(self, smoother=EkfSmoother)
 
 
 class EkfSlam(Localizer):

@@ -71,6 +71,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
+from hardware.choices import coerce
 from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
@@ -80,6 +81,7 @@ from slam.measurement import (
     RANGE_SIGMA_FRAC,
     RANGE_SIGMA_M,
     LandmarkObservation,
+    ObservationModel,
     landmark_from_range_bearing,
     landmark_from_range_bearing_jacobians,
     landmark_observation,
@@ -103,7 +105,6 @@ __all__ = [
     "tag_pose_jacobians",
 ]
 
-OBSERVATIONS = ("range-bearing", "tag-pose")
 # 99.9 % quantiles of χ² with 2 and 3 degrees of freedom (scipy.stats.chi2.ppf(0.999, k)).
 CHI2_999 = {2: 13.815510557964274, 3: 16.26623619623813}
 
@@ -149,7 +150,7 @@ class FastSlamConfig(LocalizerConfig):
     range_sigma_m: float = RANGE_SIGMA_M
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
-    observation: str = "range-bearing"
+    observation: ObservationModel = ObservationModel.RANGE_BEARING
     yaw_sigma_rad: float = 0.02
     yaw_sigma_per_m2: float = 0.03
     gate_chi2: float | None = None
@@ -164,10 +165,7 @@ class FastSlamConfig(LocalizerConfig):
             raise ValueError(f"version must be 1 or 2, got {self.version!r}")
         if int(self.n_particles) != self.n_particles or self.n_particles < 1:
             raise ValueError(f"n_particles must be a positive integer, got {self.n_particles!r}")
-        if self.observation not in OBSERVATIONS:
-            raise ValueError(
-                f"observation must be one of {', '.join(OBSERVATIONS)}, got {self.observation!r}"
-            )
+        coerce(self, observation=ObservationModel)
         if not self.weight_gain >= 1.0:
             raise ValueError(f"weight_gain must be >= 1, got {self.weight_gain}")
         if not 0.0 <= self.resample_threshold <= 1.0:

@@ -77,6 +77,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L, T, X
 
 from hardware.calibration import WalkerCalibration
+from hardware.choices import Choice, coerce
 from hardware.geometry import compose, wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
@@ -86,6 +87,7 @@ from slam.measurement import (
     RANGE_SIGMA_FRAC,
     RANGE_SIGMA_M,
     LandmarkObservation,
+    ObservationModel,
     landmark_observation,
 )
 from slam.motion import MotionNoise, OdometryModel, apply_increment, increment_jacobians
@@ -102,8 +104,29 @@ from slam.scan_matching import (
 )
 from slam.trajectory import Trajectory
 
-ROBUST_KERNELS = ("huber", "cauchy", "none")
-OBSERVATIONS = ("range-bearing", "tag-pose")
+
+class RobustKernel(Choice):
+    """The M-estimator of a robust factor (gtsam.noiseModel.mEstimator), or none."""
+
+    HUBER = "huber"
+    CAUCHY = "cauchy"
+    NONE = "none"
+
+
+class Factorization(Choice):
+    """iSAM2's linear solver."""
+
+    QR = "QR"
+    CHOLESKY = "CHOLESKY"
+
+
+class OdometryCovariance(Choice):
+    """The between-keyframe odometry covariance (module docstring): the motion model's,
+    a distance walk, or auto (the walk when scan matching, else the model)."""
+
+    AUTO = "auto"
+    MODEL = "model"
+    DISTANCE = "distance"
 
 
 @dataclass(frozen=True)
@@ -121,12 +144,11 @@ class MatchGate:
     min_inlier_fraction: float = 0.3
     max_conflict_fraction: float = 0.2
     max_ambiguity: float = 0.9
-    robust: str = "huber"
+    robust: RobustKernel = RobustKernel.HUBER
     robust_k: float = 1.345
 
     def __post_init__(self) -> None:
-        if self.robust not in ROBUST_KERNELS:
-            raise ValueError(f"robust must be one of {ROBUST_KERNELS}, got {self.robust!r}")
+        coerce(self, robust=RobustKernel)
 
 
 @dataclass(frozen=True)
@@ -213,15 +235,15 @@ class GtsamConfig(LocalizerConfig):
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     huber_k: float = 1.345
-    observation: str = "range-bearing"
+    observation: ObservationModel = ObservationModel.RANGE_BEARING
     yaw_sigma_rad: float = 0.02
     yaw_sigma_per_m2: float = 0.03
     relinearize_threshold: float = 0.01
     odometry_sigma_floor: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
     # QR: a long odometry-only chain (Intel lab, 3000 keyframes, tens of metres of
     # drift) makes iSAM2's Cholesky factorization fail as indeterminate; QR does not.
-    factorization: str = "QR"
-    odometry_cov: str = "auto"
+    factorization: Factorization = Factorization.QR
+    odometry_cov: OdometryCovariance = OdometryCovariance.AUTO
     odometry_walk: tuple[float, float, float, float] = (0.0025, 0.001, 0.006, 0.01)
     # -- scan matching (see the module docstring) ------------------------------------
     scan_matching: bool = False
@@ -234,18 +256,14 @@ class GtsamConfig(LocalizerConfig):
     loop: LoopClosures = field(default_factory=lambda: LoopClosures())
 
     def __post_init__(self) -> None:
-        if self.observation not in OBSERVATIONS:
-            raise ValueError(
-                f"observation must be one of {', '.join(OBSERVATIONS)}, got {self.observation!r}"
-            )
+        coerce(
+            self,
+            observation=ObservationModel,
+            factorization=Factorization,
+            odometry_cov=OdometryCovariance,
+        )
         if self.yaw_sigma_rad <= 0 or self.yaw_sigma_per_m2 < 0:
             raise ValueError("yaw_sigma_rad must be > 0 and yaw_sigma_per_m2 >= 0")
-        if self.odometry_cov not in ("auto", "model", "distance"):
-            raise ValueError(
-                f"odometry_cov must be auto, model or distance, got {self.odometry_cov!r}"
-            )
-        if self.factorization not in ("QR", "CHOLESKY"):
-            raise ValueError(f"factorization must be QR or CHOLESKY, got {self.factorization!r}")
 
 
 @dataclass(eq=False)

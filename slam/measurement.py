@@ -18,6 +18,7 @@ from functools import lru_cache
 import numpy as np
 
 from hardware.calibration import Mount, WalkerCalibration
+from hardware.choices import Choice
 from hardware.geometry import wrap_angle
 from hardware.messages import Message, RangeBearing, TagDetections
 
@@ -36,6 +37,14 @@ from hardware.messages import Message, RangeBearing, TagDetections
 RANGE_SIGMA_M = 0.1
 RANGE_SIGMA_FRAC = 0.05
 BEARING_SIGMA_RAD = 0.005
+
+
+class ObservationModel(Choice):
+    """What a landmark-based localizer takes from a landmark observation: its range and
+    bearing (to a point landmark) or, for a tag, its full planar pose."""
+
+    RANGE_BEARING = "range-bearing"
+    TAG_POSE = "tag-pose"
 
 
 def range_bearing(pose: np.ndarray, landmark: np.ndarray) -> np.ndarray:

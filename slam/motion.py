@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
+from hardware.choices import Choice, coerce
 from hardware.messages import BrakeCommand, EncoderTicks, Message, VelocityOdometry
 
 
@@ -139,6 +140,13 @@ def propagate(
     return (x + dx, y + dy, math.remainder(th + dtheta, 2.0 * math.pi)), new_cov, (a, b)
 
 
+class VelocityModel(Choice):
+    """How velocity odometry's noise grows (module docstring): with time or with distance."""
+
+    TIME = "time"
+    DISTANCE = "distance"
+
+
 @dataclass(frozen=True)
 class MotionNoise:
     """Odometry noise (see the module docstring); defaults suit the walker's encoders.
@@ -158,17 +166,14 @@ class MotionNoise:
     velocity_frac: float = 0.2
     omega_frac: float = 0.2
     omega_floor: float = 0.03
-    velocity_model: str = "time"
+    velocity_model: VelocityModel = VelocityModel.TIME
     distance_walk: tuple[float, float, float, float] = (0.0025, 0.001, 0.006, 0.01)
     brake_aware: bool = False
     brake_wheel_m: float = 0.02
     bias_per_full_brake: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.velocity_model not in ("time", "distance"):
-            raise ValueError(
-                f"velocity_model must be 'time' or 'distance', got {self.velocity_model!r}"
-            )
+        coerce(self, velocity_model=VelocityModel)
         if len(self.distance_walk) != 4 or min(self.distance_walk) < 0:
             raise ValueError(f"distance_walk must be four values >= 0, got {self.distance_walk}")
 

@@ -73,6 +73,7 @@ from scipy.ndimage import binary_erosion, distance_transform_edt
 from scipy.special import logsumexp
 
 from hardware.calibration import WalkerCalibration
+from hardware.choices import Choice, coerce
 from hardware.geometry import wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
@@ -104,7 +105,21 @@ ODOMETRY_ONLY_NOTE = "no landmark observations and no map: odometry only"
 # computed: room for the walker to move until the next refresh, and for the camera's
 # offset from the walker origin.
 FIELD_MARGIN_M = 1.5
-SMOOTHERS = ("rts", "ancestry", "none")
+
+
+class PathSmoother(Choice):
+    """The filter's trajectory: RTS-smoothed, the best particle's ancestry, or filtered."""
+
+    RTS = "rts"
+    ANCESTRY = "ancestry"
+    NONE = "none"
+
+
+class Proposal(Choice):
+    """Where particles are drawn from: the motion model, or a scan match (module docstring)."""
+
+    MOTION = "motion"
+    SCAN = "scan"
 
 
 @dataclass(frozen=True)
@@ -188,10 +203,10 @@ class ParticleFilterConfig(KnownMapConfig):
     resample_threshold: float = 0.5
     outlier_prob: float = 0.01
     outlier_range_m: float = 10.0
-    smoother: str = "rts"
+    smoother: PathSmoother = PathSmoother.RTS
     path_snapshot_s: float = 0.1
 
-    proposal: str = "motion"
+    proposal: Proposal = Proposal.MOTION
     proposal_window_m: tuple[float, float] = (0.15, 0.5)
     proposal_window_rad: tuple[float, float] = (0.05, 0.3)
     proposal_step_m: float = 0.05
@@ -200,14 +215,9 @@ class ParticleFilterConfig(KnownMapConfig):
     proposal_sigma_floor: tuple[float, float, float] = (0.01, 0.01, 0.005)
 
     def __post_init__(self) -> None:
-        if self.smoother not in SMOOTHERS:
-            raise ValueError(
-                f"smoother must be one of {', '.join(SMOOTHERS)}, got {self.smoother!r}"
-            )
+        coerce(self, smoother=PathSmoother, proposal=Proposal)
         if not 0.0 <= self.outlier_prob < 1.0 or self.outlier_range_m <= 0:
             raise ValueError("outlier_prob must be in [0, 1) and outlier_range_m > 0")
-        if self.proposal not in ("motion", "scan"):
-            raise ValueError(f"proposal must be 'motion' or 'scan', got {self.proposal!r}")
         if min(self.proposal_step_m, self.proposal_step_rad) <= 0 or self.proposal_fine_steps < 1:
             raise ValueError("proposal steps must be > 0 and proposal_fine_steps >= 1")
         if self.n_particles < 1:
