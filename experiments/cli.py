@@ -163,6 +163,11 @@ DatasetOpt = Annotated[
 ]
 
 
+DATASET_OPTIONS_NEED_FORMAT = (
+    "--robot, --relations, --time-offset and --dataset-option need --format"
+)
+
+
 def _dataset_options(robot, relations, time_offset, extra: list[str] | None = None) -> dict:
     given = {"robot": robot, "relations": relations, "time_offset": time_offset}
     out = {k: (str(v) if isinstance(v, Path) else v) for k, v in given.items() if v is not None}
@@ -243,7 +248,6 @@ def replay(
     from control.base import CONTROLLERS
     from experiments.config import configure
     from experiments.run import replay_log
-    from hardware.log import read_log
     from mapping.grid import GridConfig, MapModel
     from mapping.mapper import MapperConfig
     from slam.base import LOCALIZERS
@@ -257,16 +261,9 @@ def replay(
     if map_model not in [m.value for m in MapModel]:
         raise ConfigError(f"unknown map model '{map_model}'; valid: log-odds, view-count")
     mapper_config = MapperConfig(grid=GridConfig(resolution_m=resolution, model=map_model))
-    if format is not None:
-        from hardware.datasets import open_dataset
-
-        opts = _dataset_options(robot, relations, time_offset, dataset_option)
-        trial = open_dataset(format, log, **opts)
-        total = None  # unknown until read
-    else:
-        trial = read_log(log)  # fail fast on a bad file, before the progress bar
-        t0, t1 = trial.time_range if trial.message_count else (0.0, 0.0)
-        total = t1 - t0
+    trial, total = _open_source(
+        log, format, _dataset_options(robot, relations, time_offset, dataset_option)
+    )
     start: list[float] = []
 
     def elapsed(t: float) -> float:
@@ -279,14 +276,7 @@ def replay(
     if built.proposed:
         what = ", ".join(f"{k}={v}" for k, v in built.proposed.items())
         err_console.print(f"note: the source proposes {what}", highlight=False, soft_wrap=True)
-    view = None
-    if foxglove:
-        from experiments.live_view import FoxgloveView
-
-        if not speed > 0:
-            raise ConfigError(f"--speed must be > 0, got {speed}")
-        view = FoxgloveView(trial.calibration, port=foxglove_port)
-        console.print(f"live view: {view.url} (Foxglove: open a WebSocket connection)")
+    view = _replay_view(trial, foxglove_port, speed) if foxglove else None
     try:
         with progress_bar(f"replaying with {localizer}", total) as update:
             res = replay_log(
@@ -312,6 +302,33 @@ def replay(
     finally:
         if view is not None:
             view.close()
+
+
+def _open_source(log: Path, format: str | None, dataset_opts: dict):
+    """The trial to replay and its duration (None when a dataset's is unknown until read);
+    a bad file fails here, before the progress bar."""
+    if format is not None:
+        from hardware.datasets import open_dataset
+
+        return open_dataset(format, log, **dataset_opts), None
+    if dataset_opts:
+        raise ConfigError(DATASET_OPTIONS_NEED_FORMAT)
+    from hardware.log import read_log
+
+    trial = read_log(log)
+    t0, t1 = trial.time_range if trial.message_count else (0.0, 0.0)
+    return trial, t1 - t0
+
+
+def _replay_view(trial, port: int, speed: float):
+    """The Foxglove view of a replay (experiments.live_view), its address printed."""
+    from experiments.live_view import FoxgloveView
+
+    if not speed > 0:
+        raise ConfigError(f"--speed must be > 0, got {speed}")
+    view = FoxgloveView(trial.calibration, port=port)
+    console.print(f"live view: {view.url} (Foxglove: open a WebSocket connection)")
+    return view
 
 
 def _check_out_dir(out: Path) -> None:
@@ -444,34 +461,10 @@ def compare(
     With several logs (or robots) each localizer also gets a row with the mean over them."""
     from experiments.compare import compare as run_compare
     from experiments.compare import parse_localizers
-    from hardware.log import read_log
 
     names = parse_localizers(localizers)
     overrides = _localizer_overrides(set_, names)
-    sources: list = []
-    if format is not None:
-        from hardware.datasets import open_dataset
-
-        robots: list[int | None] = [None]
-        if robot is not None:
-            try:
-                robots = [int(r) for r in robot.split(",") if r.strip()]
-            except ValueError:
-                raise ConfigError(
-                    f"--robot must be numbers separated by commas, got {robot!r}"
-                ) from None
-        for log in logs:
-            for r in robots:
-                opts = _dataset_options(r, relations, time_offset, dataset_option)
-                sources.append(open_dataset(format, log, **opts))
-    else:
-        if robot is not None or relations is not None or time_offset is not None or dataset_option:
-            raise ConfigError(
-                "--robot, --relations, --time-offset and --dataset-option need --format"
-            )
-        for log in logs:
-            read_log(log)  # fail fast on a bad file, before any run
-        sources = list(logs)
+    sources = _compare_sources(logs, format, robot, relations, time_offset, dataset_option)
     if seeds < 1:
         raise ConfigError(f"--seeds must be >= 1, got {seeds}")
     with Progress(
@@ -490,6 +483,42 @@ def compare(
             progress=lambda what: bar.update(task, description=what),
             overrides=overrides,
         )
+    console.print(_summary_table(res.summary))
+    console.print("files: " + ", ".join(str(p) for p in res.files.values()), highlight=False)
+
+
+def _compare_sources(logs, format, robot, relations, time_offset, dataset_option) -> list:
+    """compare's sources: trial log paths (each read once to fail fast on a bad file), or
+    the datasets opened for each log and --robot."""
+    sources: list = []
+    if format is not None:
+        from hardware.datasets import open_dataset
+
+        robots: list[int | None] = [None]
+        if robot is not None:
+            try:
+                robots = [int(r) for r in robot.split(",") if r.strip()]
+            except ValueError:
+                raise ConfigError(
+                    f"--robot must be numbers separated by commas, got {robot!r}"
+                ) from None
+        for log in logs:
+            for r in robots:
+                opts = _dataset_options(r, relations, time_offset, dataset_option)
+                sources.append(open_dataset(format, log, **opts))
+    else:
+        if robot is not None or relations is not None or time_offset is not None or dataset_option:
+            raise ConfigError(DATASET_OPTIONS_NEED_FORMAT)
+        from hardware.log import read_log
+
+        for log in logs:
+            read_log(log)  # fail fast on a bad file, before any run
+        sources = list(logs)
+    return sources
+
+
+def _summary_table(summary: list[dict]) -> Table:
+    """compare's table: a row per log and localizer, the metrics any row has (mean±std)."""
     short = {
         "ate_rmse_m": "ATE m",
         "ate_rmse_unaligned_m": "ATE unal. m",
@@ -500,17 +529,16 @@ def compare(
         "phantom_area_m2": "phantom m²",
         "realtime_factor": "× RT",
     }
-    shown = [k for k in short if any(s[k] is not None for s in res.summary)]
+    shown = [k for k in short if any(s[k] is not None for s in summary)]
     table = Table("log", "localizer", "runs", *[short[k] for k in shown])
-    for s in res.summary:
+    for s in summary:
         cells = []
         for k in shown:
             v = s[k]
             spread = "" if v is None or s["runs"] == 1 else f"±{v[1]:.3f}"
             cells.append("" if v is None else f"{v[0]:.3f}{spread}")
         table.add_row(s["log"], s["localizer"], str(s["runs"]), *cells)
-    console.print(table)
-    console.print("files: " + ", ".join(str(p) for p in res.files.values()), highlight=False)
+    return table
 
 
 @app.command(name="slip-push")

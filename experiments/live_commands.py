@@ -12,7 +12,10 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.live import Live
+from rich.text import Text
 
+from experiments.cli_common import console, err_console, friendly, parse_size
 from hardware.errors import ConfigError
 
 
@@ -110,249 +113,246 @@ def image_files(paths: list[Path]) -> list[Path]:
     return out
 
 
+def live(
+    localizer: Annotated[str, typer.Option(help="localizer to run")] = "dead-reckoning",
+    controller: Annotated[str, typer.Option(help="braking controller")] = "open-loop",
+    serial: Annotated[
+        str | None, typer.Option(help="the board's serial port, e.g. /dev/ttyACM0")
+    ] = None,
+    depth: Annotated[
+        str, typer.Option(help="kinect, kinect:INDEX, realsense, fakenect:DIR or none")
+    ] = "none",
+    camera: Annotated[
+        str,
+        typer.Option(
+            help="tag camera: a device INDEX, a video file or image folder, kinect, or none"
+        ),
+    ] = "none",
+    camera_calibration: Annotated[
+        Path | None,
+        typer.Option(help="the tag camera's calibration YAML (walkerslam calibrate-camera)"),
+    ] = None,
+    camera_fps: Annotated[
+        float | None,
+        typer.Option(help="pace a tag-camera video file or image folder to this rate"),
+    ] = None,
+    calibration: Annotated[
+        Path | None, typer.Option(help="walker calibration JSON (default: the thesis walker)")
+    ] = None,
+    record: Annotated[
+        Path | None, typer.Option(help="record every stream and command to this .mcap")
+    ] = None,
+    duration: Annotated[float | None, typer.Option(help="stop after this many s")] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set",
+            help="NAME.FIELD=VALUE: a field of the localizer's or controller's config (repeatable)",
+        ),
+    ] = None,
+    sim: Annotated[
+        bool,
+        typer.Option(
+            "--sim",
+            help="the simulated walker in real time: board emulator on a pty, simulated cameras",
+        ),
+    ] = False,
+    firmware: Annotated[
+        bool, typer.Option("--firmware", help="--sim: the compiled firmware in simavr")
+    ] = False,
+    course: Annotated[str, typer.Option(help="--sim: course name or JSON")] = "thesis-course",
+    seed: Annotated[int, typer.Option(help="--sim: random seed")] = 0,
+    surface: Annotated[str, typer.Option(help="--sim: clean, dusty or S")] = "dusty",
+    depth_size: Annotated[str, typer.Option(help="--sim: depth image WxH")] = "160x120",
+    depth_rate: Annotated[int, typer.Option(help="--sim: depth frames per second")] = 10,
+    sim_duration: Annotated[float, typer.Option(help="--sim: longest simulated trial [s]")] = 300.0,
+    foxglove: Annotated[
+        bool, typer.Option("--foxglove", help="serve the streams to Foxglove (WebSocket)")
+    ] = False,
+    foxglove_port: Annotated[int, typer.Option(help="--foxglove: port (0: any)")] = 8765,
+    trigger: Annotated[
+        str,
+        typer.Option(
+            help="frame: a command right after each depth frame (at --rate while "
+            "frames stall); timer: commands at --rate only"
+        ),
+    ] = "frame",
+    rate: Annotated[float, typer.Option(help="the controller's loop rate [Hz]")] = 10.0,
+) -> None:
+    """Run a localizer and a braking controller live on the walker (or, with --sim, on
+    the simulated walker in real time), recording everything; Ctrl-C stops and
+    releases the brakes."""
+    from dataclasses import replace
+
+    from control.base import CONTROLLERS
+    from experiments.config import parse_sets
+    from experiments.live import LIVE_LOOP, LiveError, LiveOptions, LiveRun, SimWalker
+    from slam.base import LOCALIZERS
+
+    LOCALIZERS.spec(localizer)
+    CONTROLLERS.spec(controller)
+    if localizer == controller:
+        raise ConfigError("the localizer and the controller need different names")
+    sets = parse_sets(
+        set_ or [], {localizer: LOCALIZERS, controller: CONTROLLERS}, [localizer, controller]
+    )
+    if sim and (serial is not None or depth != "none" or camera != "none"):
+        raise LiveError("--sim brings its own board and cameras: drop --serial/--depth/--camera")
+    if firmware and not sim:
+        raise LiveError("--firmware goes with --sim")
+    sim_walker = (
+        SimWalker(
+            course=course,
+            seed=seed,
+            surface=surface,
+            duration_s=sim_duration,
+            depth_size=parse_size(depth_size),
+            depth_rate_hz=depth_rate,
+            firmware=firmware,
+        )
+        if sim
+        else None
+    )
+    opts = LiveOptions(
+        localizer=localizer,
+        controller=controller,
+        serial=serial,
+        depth=depth,
+        camera=camera,
+        camera_yaml=str(camera_calibration) if camera_calibration else None,
+        camera_fps=camera_fps,
+        calibration=str(calibration) if calibration else None,
+        record=str(record) if record else None,
+        duration_s=duration,
+        localizer_overrides=sets.get(localizer, {}),
+        controller_overrides=sets.get(controller, {}),
+        sim=sim_walker,
+        foxglove_port=foxglove_port if foxglove else None,
+        loop=replace(LIVE_LOOP, trigger=trigger, rate_hz=rate),
+    )
+    with _status_display(err_console, Live, Text) as show:
+        run = LiveRun(opts, on_status=lambda s: show(status_line(s)))
+        with _stop_on_signals(run.stop):
+            res = run.run()
+    _print_live_result(res)
+
+
+def _print_live_result(res) -> None:
+    """The summary line of a finished live run (experiments.live.LiveResult)."""
+    lat = res.latency_ms
+    console.print(
+        f"live run ended ({res.ended_by}) after {res.duration_s:.1f} s: "
+        f"{res.commands} brake commands, frame→command latency p50 {lat['p50']:.1f} ms, "
+        f"p99 {lat['p99']:.1f} ms over {lat['frames']} frames; dropped "
+        f"{sum(res.dropped.values())} frames; board: {res.board['ticks']} ticks, "
+        f"{res.board['bad_lines']} bad lines, {res.board['seq_gaps']} sequence gaps, "
+        f"{res.board['resets']} resets, {res.board['reconnects']} reconnects",
+        highlight=False,
+        soft_wrap=True,
+    )
+    if "log" in res.files:
+        console.print(f"recorded → {res.files['log']}", highlight=False, soft_wrap=True)
+
+
+def board(
+    port: Annotated[str, typer.Argument(help="serial port, e.g. /dev/ttyACM0")],
+    duration: Annotated[float | None, typer.Option(help="stop after this many s")] = None,
+    record: Annotated[
+        Path | None, typer.Option(help="record ticks and commands to this .mcap")
+    ] = None,
+    brake: Annotated[
+        str | None, typer.Option(help="hold this brake command, L,R torques in N·m")
+    ] = None,
+    calibration: Annotated[
+        Path | None, typer.Option(help="walker calibration JSON (default: the thesis walker)")
+    ] = None,
+) -> None:
+    """The bench tool for wiring the walker: handshake, print the firmware, the tick
+    rate and both encoder counts live, hold a brake command; exit releases the brakes."""
+
+    from experiments.live import bench_board
+    from hardware.calibration import WalkerCalibration, load_calibration
+
+    brake_nm = _parse_pair(brake, "--brake") if brake else None
+    cal = load_calibration(calibration) if calibration is not None else WalkerCalibration()
+    stop = threading.Event()
+
+    def reading(r) -> str:
+        pwm = "—" if r.pwm is None else f"{r.pwm[0]}/{r.pwm[1]}"
+        s = r.stats
+        return (
+            f"{r.t:7.1f}s  left {r.counts[0]:>9d}  right {r.counts[1]:>9d}  "
+            f"{r.rate_hz:5.0f} Hz  PWM {pwm}{' (timed out)' if r.timed_out else ''}  "
+            f"bad lines {s.bad_lines}  gaps {s.seq_gaps}  resets {s.resets}"
+        )
+
+    with _status_display(err_console, Live, Text) as show:
+        with _stop_on_signals(stop.set):
+            res = bench_board(
+                port,
+                calibration=cal,
+                duration_s=duration,
+                record=str(record) if record else None,
+                brake_nm=brake_nm,
+                on_update=lambda r: show(reading(r)),
+                stop=stop,
+            )
+    hs = res.handshake
+    console.print(
+        f"{port}: firmware {hs.firmware} (protocol {hs.proto}), {hs.rate_hz} Hz, "
+        f"{hs.cpr} counts/rev, reset cause {hs.reset_cause}; {res.ticks} ticks in "
+        f"{res.duration_s:.1f} s, counts left {res.counts[0]} right {res.counts[1]}; "
+        f"brakes released",
+        highlight=False,
+        soft_wrap=True,
+    )
+    if "log" in res.files:
+        console.print(f"recorded → {res.files['log']}", highlight=False, soft_wrap=True)
+
+
+def calibrate_camera_cmd(
+    images: Annotated[
+        list[Path], typer.Argument(help="photos of a checkerboard (files or folders)")
+    ],
+    board: Annotated[
+        str, typer.Option(help="inner corners COLSxROWS, e.g. 9x6 for 10x7 squares")
+    ] = "9x6",
+    square: Annotated[float, typer.Option(help="side of a square [m]")] = 0.025,
+    output: Annotated[
+        Path, typer.Option("-o", "--output", help="camera calibration YAML to write")
+    ] = Path("camera.yaml"),
+    tag_size: Annotated[
+        float | None, typer.Option(help="side of the AprilTags it will see [m]")
+    ] = None,
+    tag_family: Annotated[str | None, typer.Option(help="their family")] = None,
+    camera_name: Annotated[str, typer.Option(help="name written in the YAML")] = "camera",
+    min_images: Annotated[int, typer.Option(help="fewest usable images")] = 5,
+) -> None:
+    """Calibrate a camera from checkerboard photos (OpenCV); print the RMS
+    reprojection error and write the YAML that `walkerslam live
+    --camera-calibration` reads."""
+    from hardware.camera_calibration import calibrate_camera
+
+    try:
+        cols, rows = (int(v) for v in board.lower().split("x"))
+    except ValueError:
+        raise ConfigError(f"--board takes COLSxROWS inner corners, got '{board}'") from None
+    files = image_files(images)
+    res = calibrate_camera(
+        [str(f) for f in files],
+        (cols, rows),
+        square,
+        min_images=min_images,
+        camera_name=camera_name,
+    )
+    for line in res.summary_lines():
+        console.print(line, highlight=False, soft_wrap=True)
+    path = res.save(output, camera_name=camera_name, tag_family=tag_family, tag_size_m=tag_size)
+    console.print(f"wrote {path}", highlight=False, soft_wrap=True)
+
+
 def register(app: typer.Typer) -> None:
     """Add `live`, `board` and `calibrate-camera` to `app` (the `walkerslam` CLI)."""
-    from rich.live import Live
-    from rich.text import Text
-
-    from experiments.cli_common import console, err_console, friendly, parse_size
-
-    @app.command()
-    @friendly
-    def live(
-        localizer: Annotated[str, typer.Option(help="localizer to run")] = "dead-reckoning",
-        controller: Annotated[str, typer.Option(help="braking controller")] = "open-loop",
-        serial: Annotated[
-            str | None, typer.Option(help="the board's serial port, e.g. /dev/ttyACM0")
-        ] = None,
-        depth: Annotated[
-            str, typer.Option(help="kinect, kinect:INDEX, realsense, fakenect:DIR or none")
-        ] = "none",
-        camera: Annotated[
-            str,
-            typer.Option(
-                help="tag camera: a device INDEX, a video file or image folder, kinect, or none"
-            ),
-        ] = "none",
-        camera_calibration: Annotated[
-            Path | None,
-            typer.Option(help="the tag camera's calibration YAML (walkerslam calibrate-camera)"),
-        ] = None,
-        camera_fps: Annotated[
-            float | None,
-            typer.Option(help="pace a tag-camera video file or image folder to this rate"),
-        ] = None,
-        calibration: Annotated[
-            Path | None, typer.Option(help="walker calibration JSON (default: the thesis walker)")
-        ] = None,
-        record: Annotated[
-            Path | None, typer.Option(help="record every stream and command to this .mcap")
-        ] = None,
-        duration: Annotated[float | None, typer.Option(help="stop after this many s")] = None,
-        set_: Annotated[
-            list[str] | None,
-            typer.Option(
-                "--set",
-                help="NAME.FIELD=VALUE: a field of the localizer's or controller's config "
-                "(repeatable)",
-            ),
-        ] = None,
-        sim: Annotated[
-            bool,
-            typer.Option(
-                "--sim",
-                help="the simulated walker in real time: board emulator on a pty, simulated "
-                "cameras",
-            ),
-        ] = False,
-        firmware: Annotated[
-            bool, typer.Option("--firmware", help="--sim: the compiled firmware in simavr")
-        ] = False,
-        course: Annotated[str, typer.Option(help="--sim: course name or JSON")] = "thesis-course",
-        seed: Annotated[int, typer.Option(help="--sim: random seed")] = 0,
-        surface: Annotated[str, typer.Option(help="--sim: clean, dusty or S")] = "dusty",
-        depth_size: Annotated[str, typer.Option(help="--sim: depth image WxH")] = "160x120",
-        depth_rate: Annotated[int, typer.Option(help="--sim: depth frames per second")] = 10,
-        sim_duration: Annotated[
-            float, typer.Option(help="--sim: longest simulated trial [s]")
-        ] = 300.0,
-        foxglove: Annotated[
-            bool, typer.Option("--foxglove", help="serve the streams to Foxglove (WebSocket)")
-        ] = False,
-        foxglove_port: Annotated[int, typer.Option(help="--foxglove: port (0: any)")] = 8765,
-        trigger: Annotated[
-            str,
-            typer.Option(
-                help="frame: a command right after each depth frame (at --rate while "
-                "frames stall); timer: commands at --rate only"
-            ),
-        ] = "frame",
-        rate: Annotated[float, typer.Option(help="the controller's loop rate [Hz]")] = 10.0,
-    ) -> None:
-        """Run a localizer and a braking controller live on the walker (or, with --sim, on
-        the simulated walker in real time), recording everything; Ctrl-C stops and
-        releases the brakes."""
-        from dataclasses import replace
-
-        from control.base import CONTROLLERS
-        from experiments.config import parse_sets
-        from experiments.live import LIVE_LOOP, LiveError, LiveOptions, LiveRun, SimWalker
-        from slam.base import LOCALIZERS
-
-        LOCALIZERS.spec(localizer)
-        CONTROLLERS.spec(controller)
-        if localizer == controller:
-            raise ConfigError("the localizer and the controller need different names")
-        sets = parse_sets(
-            set_ or [], {localizer: LOCALIZERS, controller: CONTROLLERS}, [localizer, controller]
-        )
-        sim_walker = None
-        if sim:
-            if serial is not None or depth != "none" or camera != "none":
-                raise LiveError(
-                    "--sim brings its own board and cameras: drop --serial/--depth/--camera"
-                )
-            sim_walker = SimWalker(
-                course=course,
-                seed=seed,
-                surface=surface,
-                duration_s=sim_duration,
-                depth_size=parse_size(depth_size),
-                depth_rate_hz=depth_rate,
-                firmware=firmware,
-            )
-        elif firmware:
-            raise LiveError("--firmware goes with --sim")
-        opts = LiveOptions(
-            localizer=localizer,
-            controller=controller,
-            serial=serial,
-            depth=depth,
-            camera=camera,
-            camera_yaml=str(camera_calibration) if camera_calibration else None,
-            camera_fps=camera_fps,
-            calibration=str(calibration) if calibration else None,
-            record=str(record) if record else None,
-            duration_s=duration,
-            localizer_overrides=sets.get(localizer, {}),
-            controller_overrides=sets.get(controller, {}),
-            sim=sim_walker,
-            foxglove_port=foxglove_port if foxglove else None,
-            loop=replace(LIVE_LOOP, trigger=trigger, rate_hz=rate),
-        )
-        with _status_display(err_console, Live, Text) as show:
-            run = LiveRun(opts, on_status=lambda s: show(status_line(s)))
-            with _stop_on_signals(run.stop):
-                res = run.run()
-        lat = res.latency_ms
-        console.print(
-            f"live run ended ({res.ended_by}) after {res.duration_s:.1f} s: "
-            f"{res.commands} brake commands, frame→command latency p50 {lat['p50']:.1f} ms, "
-            f"p99 {lat['p99']:.1f} ms over {lat['frames']} frames; dropped "
-            f"{sum(res.dropped.values())} frames; board: {res.board['ticks']} ticks, "
-            f"{res.board['bad_lines']} bad lines, {res.board['seq_gaps']} sequence gaps, "
-            f"{res.board['resets']} resets, {res.board['reconnects']} reconnects",
-            highlight=False,
-            soft_wrap=True,
-        )
-        if "log" in res.files:
-            console.print(f"recorded → {res.files['log']}", highlight=False, soft_wrap=True)
-
-    @app.command()
-    @friendly
-    def board(
-        port: Annotated[str, typer.Argument(help="serial port, e.g. /dev/ttyACM0")],
-        duration: Annotated[float | None, typer.Option(help="stop after this many s")] = None,
-        record: Annotated[
-            Path | None, typer.Option(help="record ticks and commands to this .mcap")
-        ] = None,
-        brake: Annotated[
-            str | None, typer.Option(help="hold this brake command, L,R torques in N·m")
-        ] = None,
-        calibration: Annotated[
-            Path | None, typer.Option(help="walker calibration JSON (default: the thesis walker)")
-        ] = None,
-    ) -> None:
-        """The bench tool for wiring the walker: handshake, print the firmware, the tick
-        rate and both encoder counts live, hold a brake command; exit releases the brakes."""
-
-        from experiments.live import bench_board
-        from hardware.calibration import WalkerCalibration, load_calibration
-
-        brake_nm = _parse_pair(brake, "--brake") if brake else None
-        cal = load_calibration(calibration) if calibration is not None else WalkerCalibration()
-        stop = threading.Event()
-
-        def reading(r) -> str:
-            pwm = "—" if r.pwm is None else f"{r.pwm[0]}/{r.pwm[1]}"
-            s = r.stats
-            return (
-                f"{r.t:7.1f}s  left {r.counts[0]:>9d}  right {r.counts[1]:>9d}  "
-                f"{r.rate_hz:5.0f} Hz  PWM {pwm}{' (timed out)' if r.timed_out else ''}  "
-                f"bad lines {s.bad_lines}  gaps {s.seq_gaps}  resets {s.resets}"
-            )
-
-        with _status_display(err_console, Live, Text) as show:
-            with _stop_on_signals(stop.set):
-                res = bench_board(
-                    port,
-                    calibration=cal,
-                    duration_s=duration,
-                    record=str(record) if record else None,
-                    brake_nm=brake_nm,
-                    on_update=lambda r: show(reading(r)),
-                    stop=stop,
-                )
-        hs = res.handshake
-        console.print(
-            f"{port}: firmware {hs.firmware} (protocol {hs.proto}), {hs.rate_hz} Hz, "
-            f"{hs.cpr} counts/rev, reset cause {hs.reset_cause}; {res.ticks} ticks in "
-            f"{res.duration_s:.1f} s, counts left {res.counts[0]} right {res.counts[1]}; "
-            f"brakes released",
-            highlight=False,
-            soft_wrap=True,
-        )
-        if "log" in res.files:
-            console.print(f"recorded → {res.files['log']}", highlight=False, soft_wrap=True)
-
-    @app.command(name="calibrate-camera")
-    @friendly
-    def calibrate_camera_cmd(
-        images: Annotated[
-            list[Path], typer.Argument(help="photos of a checkerboard (files or folders)")
-        ],
-        board: Annotated[
-            str, typer.Option(help="inner corners COLSxROWS, e.g. 9x6 for 10x7 squares")
-        ] = "9x6",
-        square: Annotated[float, typer.Option(help="side of a square [m]")] = 0.025,
-        output: Annotated[
-            Path, typer.Option("-o", "--output", help="camera calibration YAML to write")
-        ] = Path("camera.yaml"),
-        tag_size: Annotated[
-            float | None, typer.Option(help="side of the AprilTags it will see [m]")
-        ] = None,
-        tag_family: Annotated[str | None, typer.Option(help="their family")] = None,
-        camera_name: Annotated[str, typer.Option(help="name written in the YAML")] = "camera",
-        min_images: Annotated[int, typer.Option(help="fewest usable images")] = 5,
-    ) -> None:
-        """Calibrate a camera from checkerboard photos (OpenCV); print the RMS
-        reprojection error and write the YAML that `walkerslam live
-        --camera-calibration` reads."""
-        from hardware.camera_calibration import calibrate_camera
-
-        try:
-            cols, rows = (int(v) for v in board.lower().split("x"))
-        except ValueError:
-            raise ConfigError(f"--board takes COLSxROWS inner corners, got '{board}'") from None
-        files = image_files(images)
-        res = calibrate_camera(
-            [str(f) for f in files],
-            (cols, rows),
-            square,
-            min_images=min_images,
-            camera_name=camera_name,
-        )
-        for line in res.summary_lines():
-            console.print(line, highlight=False, soft_wrap=True)
-        path = res.save(output, camera_name=camera_name, tag_family=tag_family, tag_size_m=tag_size)
-        console.print(f"wrote {path}", highlight=False, soft_wrap=True)
+    app.command()(friendly(live))
+    app.command()(friendly(board))
+    app.command(name="calibrate-camera")(friendly(calibrate_camera_cmd))

@@ -183,6 +183,12 @@ def test_an_output_folder_that_is_a_file(short_log, tmp_path):
     assert_one_line_error(res, "taken", "is a file")
 
 
+def test_dataset_options_without_a_format_are_an_error(short_log, tmp_path):
+    res = walkerslam("replay", short_log, "--out", tmp_path / "r", "--robot", "2")
+    assert_one_line_error(res, "need --format")
+    assert not (tmp_path / "r").exists()
+
+
 @pytest.mark.parametrize("duration", ["-5", "0"])
 def test_simulate_needs_a_positive_duration(tmp_path, duration):
     out = tmp_path / "t.mcap"
