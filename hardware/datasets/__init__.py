@@ -15,7 +15,8 @@ Formats (one module each; `available_formats()`):
     victoria-park  hardware.datasets.victoria_park  ACFR Victoria Park folder
 
 Each module's docstring documents its file format and every conversion decision.
-`hardware.datasets.base` has the shared machinery (Dataset, DatasetError, the registry).
+`hardware.datasets.base` has the shared machinery (Dataset, DatasetError, the registry,
+the steps every importer takes).
 """
 
 from hardware.datasets.base import (

@@ -22,6 +22,11 @@ Every dataset carries
 `import_to_log(dataset, out)` writes messages, calibration and metadata to an MCAP trial
 log (`hardware.log.LogWriter`); `import_dataset(format, path, out, **options)` does both.
 
+The steps the importers share are here too: `require_folder`, `sorted_by_time`, the
+stream factories (`velocity_stream`, `range_bearing_stream`, `groundtruth_stream`) put
+in the tie order above by `tie_ordered_streams`, and the metadata's `config_metadata`
+and `span_and_counts`.
+
 Bad input raises `DatasetError` (a ValueError) with one line naming the file and what is
 wrong; an unknown format raises `hardware.registry.UnknownNameError` listing the valid
 ones. Files may be plain text or gzip (detected from the content, not the name).
@@ -40,7 +45,7 @@ import numpy as np
 from hardware.calibration import WalkerCalibration
 from hardware.errors import DatasetError
 from hardware.geometry import wrap1
-from hardware.messages import GroundTruthPose, Message, merge
+from hardware.messages import GroundTruthPose, Message, RangeBearing, VelocityOdometry, merge
 from hardware.registry import Registry, UnknownNameError
 
 __all__ = [
@@ -134,6 +139,12 @@ def options_dict(config: Any) -> dict[str, Any]:
     return out
 
 
+def coerce_option(options: Any, name: str, convert: Callable[..., Any], **kwargs: Any) -> None:
+    """Replace field `name` of a frozen options dataclass by `convert(name, value, **kwargs)`
+    (in `__post_init__`, e.g. `coerce_option(self, "robot", as_int)`)."""
+    object.__setattr__(options, name, convert(name, getattr(options, name), **kwargs))
+
+
 def check_choice(name: str, value: str, valid: tuple[str, ...]) -> None:
     if value not in valid:
         raise ValueError(f"{name} must be one of {', '.join(valid)}; got {value!r}")
@@ -174,6 +185,57 @@ def interpolate_pose(t: np.ndarray, poses: np.ndarray, at: float) -> tuple[float
     return (x, y, math.remainder(float(np.interp(at, t, th)), 2.0 * math.pi))
 
 
+# ---------------------------------------------------------------------------------------
+# the steps every importer shares: its folder, time order, streams, metadata
+
+
+def require_folder(path: str | Path, format: str) -> Path:
+    """`path` as a dataset folder; a DatasetError when it is missing or not a folder."""
+    folder = Path(path)
+    if not folder.is_dir():
+        what = "missing folder" if not folder.exists() else "not a folder"
+        raise DatasetError(f"{folder}: {what} ({format} takes the dataset folder)")
+    return folder
+
+
+def time_order(t: np.ndarray, name: str, notes: list[str]) -> np.ndarray | None:
+    """The stable order that sorts the times `t`, or None when they never step back; a
+    sort is noted in `notes` (metadata "dataset" "notes") under `name`."""
+    order, back = sorted_stream_order(t)
+    if order is not None:
+        notes.append(f"{name}: {back} timestamps step back; rows stably sorted by time")
+    return order
+
+
+def sorted_by_time(data: np.ndarray, name: str, notes: list[str], col: int = 0) -> np.ndarray:
+    """The rows of `data` stably sorted by their time column `col` (`data` itself when in
+    order; see `time_order`)."""
+    order = time_order(data[:, col], name, notes)
+    return data if order is None else data[order]
+
+
+def velocity_stream(t: np.ndarray, v: np.ndarray, w: np.ndarray) -> StreamFactory:
+    """VelocityOdometry messages from columns of times, speeds and yaw rates."""
+
+    def gen() -> Iterator[VelocityOdometry]:
+        for ti, vi, wi in zip(t.tolist(), v.tolist(), w.tolist(), strict=True):
+            yield VelocityOdometry(ti, vi, wi)
+
+    return gen
+
+
+def range_bearing_stream(
+    t: np.ndarray, ids: np.ndarray, r: np.ndarray, b: np.ndarray
+) -> StreamFactory:
+    """RangeBearing messages from columns of times, landmark IDs, ranges and bearings."""
+
+    def gen() -> Iterator[RangeBearing]:
+        for ti, i, ri, bi in zip(t.tolist(), ids.tolist(), r.tolist(), b.tolist(), strict=True):
+            yield RangeBearing(ti, i, ri, bi)
+
+    return gen
+
+
 def groundtruth_stream(t: np.ndarray, poses: np.ndarray) -> StreamFactory:
     """GroundTruthPose messages from a time-sorted table (θ wrapped to (−π, π])."""
 
@@ -182,6 +244,50 @@ def groundtruth_stream(t: np.ndarray, poses: np.ndarray) -> StreamFactory:
             yield GroundTruthPose(ti, x, y, wrap1(th))
 
     return gen
+
+
+def tie_ordered_streams(
+    motion: tuple[type, StreamFactory],
+    observations: tuple[type, StreamFactory],
+    truth: tuple[np.ndarray, np.ndarray] | None = None,
+) -> dict[type, StreamFactory]:
+    """`Dataset.streams` in the order `merge` keeps at equal timestamps (module
+    docstring): the motion stream, the ground truth (times, poses) if there is any, then
+    the observations."""
+    streams = dict([motion])
+    if truth is not None:
+        streams[GroundTruthPose] = groundtruth_stream(*truth)
+    streams.update([observations])
+    return streams
+
+
+def config_metadata(
+    format: str,
+    path: Path,
+    options: Any,
+    initial_pose: tuple[float, float, float],
+    **extra: Any,
+) -> dict[str, Any]:
+    """Metadata "config": the format, the resolved path, every option, the initial pose,
+    then the format's `extra` entries."""
+    return {
+        "format": format,
+        "path": str(path.resolve()),
+        **options_dict(options),
+        "initial_pose": list(initial_pose),
+        **extra,
+    }
+
+
+def span_and_counts(counts: dict[str, int], *times: np.ndarray) -> dict[str, Any]:
+    """Metadata "dataset" "t_first" and "t_last" (over every time in `times`, empty arrays
+    ignored) and "counts" (messages per type name)."""
+    present = [t for t in times if len(t)]
+    return {
+        "t_first": float(min(t.min() for t in present)),
+        "t_last": float(max(t.max() for t in present)),
+        "counts": counts,
+    }
 
 
 @dataclass(frozen=True)

@@ -81,7 +81,6 @@ calibration there are none (the localizers' defaults were fitted to the raw file
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -94,13 +93,19 @@ from hardware.datasets.base import (
     DatasetError,
     as_int,
     check_choice,
-    groundtruth_stream,
+    coerce_option,
+    config_metadata,
     interpolate_pose,
-    options_dict,
-    sorted_stream_order,
+    range_bearing_stream,
+    require_folder,
+    sorted_by_time,
+    span_and_counts,
+    tie_ordered_streams,
+    time_order,
+    velocity_stream,
 )
-from hardware.datasets.textio import Table, find_file, find_optional, read_table
-from hardware.messages import GroundTruthPose, RangeBearing, VelocityOdometry
+from hardware.datasets.textio import FolderFiles, find_optional, read_table
+from hardware.messages import RangeBearing, VelocityOdometry
 from hardware.registry import Spec
 
 ROBOTS = (1, 2, 3, 4, 5)
@@ -159,36 +164,36 @@ class MrclamOptions:
     calibration: str = "dataset1"
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "robot", as_int("robot", self.robot))
+        coerce_option(self, "robot", as_int)
         check_choice("groundtruth", self.groundtruth, GROUNDTRUTH_CHOICES)
         check_choice("calibration", self.calibration, CALIBRATIONS)
 
 
-def _odometry_stream(t: np.ndarray, v: np.ndarray, w: np.ndarray):
-    def gen() -> Iterator[VelocityOdometry]:
-        for ti, vi, wi in zip(t.tolist(), v.tolist(), w.tolist(), strict=True):
-            yield VelocityOdometry(ti, vi, wi)
+@dataclass
+class _Robot:
+    """What one robot's files hold, checked and in time order (odometry and ranges as in
+    the files, before the calibration)."""
 
-    return gen
+    odometry: np.ndarray  # t v ω
+    sightings: np.ndarray  # the measurement rows of landmarks: t barcode range bearing
+    sighting_ids: np.ndarray  # the landmark (subject) of each sighting
+    measurement_rows: int
+    skipped: dict[str, Any]
+    landmarks: np.ndarray  # subject x y x_std y_std
+    landmark_ids: np.ndarray  # the landmarks' subjects as int64
+    gt_kind: str
+    truth: tuple[np.ndarray, np.ndarray] | None  # ground truth times, poses (x y θ)
+    files: dict[str, str]  # the files read {name: path}
+    notes: list[str]  # what the reading changed (metadata "dataset" "notes")
 
 
-def _range_bearing_stream(t: np.ndarray, ids: np.ndarray, r: np.ndarray, b: np.ndarray):
-    def gen() -> Iterator[RangeBearing]:
-        for ti, i, ri, bi in zip(t.tolist(), ids.tolist(), r.tolist(), b.tolist(), strict=True):
-            yield RangeBearing(ti, i, ri, bi)
-
-    return gen
-
-
-def _sorted(table: Table, notes: list[str]) -> np.ndarray:
-    order, back = sorted_stream_order(table.data[:, 0])
-    if order is None:
-        return table.data
-    notes.append(f"{table.path.name}: {back} timestamps step back; rows stably sorted by time")
-    return table.data[order]
+def _read_sorted(path: Path, columns: int, notes: list[str]) -> np.ndarray:
+    """The rows of a table with its time first, stably sorted by time."""
+    return sorted_by_time(read_table(path, columns).data, path.name, notes)
 
 
 def _barcodes(path: Path) -> dict[int, int]:
+    """{barcode: subject} of Barcodes.dat; a DatasetError for a barcode listed twice."""
     table = read_table(path, 2)
     subjects = table.integer_column(0, "subject")
     codes = table.integer_column(1, "barcode")
@@ -215,38 +220,26 @@ def _approx_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return t, table.data[:, 1:4]
 
 
-def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
-    folder = Path(path)
-    if not folder.is_dir():
-        what = "missing folder" if not folder.exists() else "not a folder"
-        raise DatasetError(f"{folder}: {what} (mrclam takes the dataset folder)")
-    robot = options.robot
+def _check_robot(folder: Path, robot: int) -> None:
+    """A DatasetError unless `robot` is one of the robots with an odometry file."""
     present = [r for r in ROBOTS if find_optional(folder, f"Robot{r}_Odometry.dat")]
     if robot not in ROBOTS or robot not in present:
         valid = ", ".join(str(r) for r in present) or "none found"
         raise DatasetError(f"{folder}: unknown robot number {robot}; valid: {valid}")
 
-    notes: list[str] = []
-    files: dict[str, str] = {}
 
-    def locate(name: str) -> Path:
-        p = find_file(folder, name)
-        files[name] = str(p)
-        return p
-
-    barcodes = _barcodes(locate("Barcodes.dat"))
-    lm = read_table(locate("Landmark_Groundtruth.dat"), 5)
-    lm_ids = lm.integer_column(0, "subject")
-    odo = _sorted(read_table(locate(f"Robot{robot}_Odometry.dat"), 3), notes)
-    meas_table = read_table(locate(f"Robot{robot}_Measurement.dat"), 4)
-    codes = meas_table.integer_column(1, "barcode")
-    order, back = sorted_stream_order(meas_table.data[:, 0])
-    meas = meas_table.data
+def _measurements(
+    path: Path, barcodes: dict[int, int], notes: list[str]
+) -> tuple[np.ndarray, np.ndarray, int, dict[str, Any]]:
+    """The landmark sightings of a measurement file in time order, their subjects, the
+    number of rows, and what was skipped (metadata "skipped"): barcodes of other robots
+    and barcodes not in Barcodes.dat."""
+    table = read_table(path, 4)
+    codes = table.integer_column(1, "barcode")
+    meas = table.data
+    order = time_order(meas[:, 0], "measurements", notes)
     if order is not None:
-        notes.append(f"measurements: {back} timestamps step back; rows stably sorted by time")
         meas, codes = meas[order], codes[order]
-
-    # barcode -> subject; split into landmarks, other robots, spurious
     subject = np.array([barcodes.get(c, -1) for c in codes.tolist()], dtype=np.int64)
     is_landmark = np.isin(subject, LANDMARK_SUBJECTS)
     is_robot = np.isin(subject, ROBOTS)
@@ -256,124 +249,193 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
         "unknown_barcodes": int(np.count_nonzero(unknown)),
         "unknown_barcode_values": sorted({int(c) for c in codes[unknown].tolist()}),
     }
-    rb = meas[is_landmark]
-    rb_ids = subject[is_landmark]
+    return meas[is_landmark], subject[is_landmark], len(meas), skipped
 
-    # ground truth
-    gt_kind = "none"
-    gt_t = gt_p = None
-    exact_name = f"Robot{robot}_Groundtruth.dat"
-    approx_name = f"{APPROX_DIR}/Robot{robot}_Groundtruth_intsec.csv"
-    choice = options.groundtruth
-    if choice in ("auto", "exact") and (choice == "exact" or find_optional(folder, exact_name)):
-        g = _sorted(read_table(locate(exact_name), 4), notes)
-        gt_t, gt_p, gt_kind = g[:, 0], g[:, 1:4], "exact"
-    elif choice in ("auto", "approximate") and (
-        choice == "approximate" or find_optional(folder, approx_name)
-    ):
-        gt_t, gt_p = _approx_groundtruth(locate(approx_name))
-        gt_kind = "approximate"
-    groundtruth: dict[str, Any] = {"kind": gt_kind}
-    if gt_kind == "exact":
-        groundtruth.update(source="Vicon motion capture", file=files[exact_name])
-    elif gt_kind == "approximate":
-        groundtruth.update(
-            source="Vicon rows re-saved with timestamps truncated to whole seconds",
-            file=files[approx_name],
-            note=(
-                "rows of one second spread evenly over it (t = s + (k + 0.5)/n); timing "
-                "error up to +-0.5 s, about 0.1 m at the robots' speeds: coarse scoring only"
-            ),
-        )
-    else:
-        groundtruth["note"] = "no ground truth for this robot in this folder"
 
-    cal = DATASET1_CALIBRATION if options.calibration == "dataset1" else MrclamCalibration()
-    odo = odo.copy()
+def _groundtruth_names(robot: int) -> tuple[str, str]:
+    """The exact and the approximate ground-truth file of `robot`."""
+    return f"Robot{robot}_Groundtruth.dat", f"{APPROX_DIR}/Robot{robot}_Groundtruth_intsec.csv"
+
+
+def _groundtruth(
+    files: FolderFiles, robot: int, choice: str, notes: list[str]
+) -> tuple[str, tuple[np.ndarray, np.ndarray] | None]:
+    """(kind, (times, poses)) of the ground truth option `groundtruth` picks (module
+    docstring); ("none", None) without."""
+    exact_name, approx_name = _groundtruth_names(robot)
+    if choice in ("auto", "exact") and (choice == "exact" or files.has(exact_name)):
+        g = _read_sorted(files.find(exact_name), 4, notes)
+        return "exact", (g[:, 0], g[:, 1:4])
+    if choice in ("auto", "approximate") and (choice == "approximate" or files.has(approx_name)):
+        return "approximate", _approx_groundtruth(files.find(approx_name))
+    return "none", None
+
+
+def _read_robot(folder: Path, options: MrclamOptions) -> _Robot:
+    """Read and check the folder's files for robot `options.robot`, in a fixed order (so
+    the first bad file is the one reported)."""
+    robot = options.robot
+    files = FolderFiles(folder)
+    notes: list[str] = []
+    barcodes = _barcodes(files.find("Barcodes.dat"))
+    landmarks = read_table(files.find("Landmark_Groundtruth.dat"), 5)
+    subjects = landmarks.integer_column(0, "subject")
+    odometry = _read_sorted(files.find(f"Robot{robot}_Odometry.dat"), 3, notes)
+    meas, ids, rows, skipped = _measurements(
+        files.find(f"Robot{robot}_Measurement.dat"), barcodes, notes
+    )
+    gt_kind, truth = _groundtruth(files, robot, options.groundtruth, notes)
+    return _Robot(
+        odometry=odometry,
+        sightings=meas,
+        sighting_ids=ids,
+        measurement_rows=rows,
+        skipped=skipped,
+        landmarks=landmarks.data,
+        landmark_ids=subjects,
+        gt_kind=gt_kind,
+        truth=truth,
+        files=files.found,
+        notes=notes,
+    )
+
+
+def _calibrate(robot: _Robot, cal: MrclamCalibration) -> tuple[np.ndarray, np.ndarray]:
+    """The odometry (t v ω) and the landmark ranges with `cal`'s corrections applied."""
+    odo = robot.odometry.copy()
     odo[:, 0] += cal.odometry_delay_s
     odo[:, 1] *= cal.velocity_scale
     odo[:, 2] *= cal.omega_scale
-    rb_range = rb[:, 2]
+    rb = robot.sightings
+    ranges = rb[:, 2]
     if cal.forward_range:
-        rb_range = (rb_range - cal.range_offset_m) / (cal.range_scale * np.cos(rb[:, 3]))
-    t_odo0 = float(odo[0, 0])
-    if gt_t is not None:
-        initial = interpolate_pose(gt_t, gt_p, t_odo0)
-    else:
-        initial = (0.0, 0.0, 0.0)
+        ranges = (ranges - cal.range_offset_m) / (cal.range_scale * np.cos(rb[:, 3]))
+    return odo, ranges
 
-    streams: dict[type, Any] = {
-        VelocityOdometry: _odometry_stream(odo[:, 0], odo[:, 1], odo[:, 2]),
+
+def _groundtruth_metadata(kind: str, files: dict[str, str], robot: int) -> dict[str, Any]:
+    """Metadata "groundtruth": its kind, source, file and how far to trust it."""
+    exact_name, approx_name = _groundtruth_names(robot)
+    if kind == "exact":
+        return {"kind": kind, "source": "Vicon motion capture", "file": files[exact_name]}
+    if kind == "approximate":
+        return {
+            "kind": kind,
+            "source": "Vicon rows re-saved with timestamps truncated to whole seconds",
+            "file": files[approx_name],
+            "note": (
+                "rows of one second spread evenly over it (t = s + (k + 0.5)/n); timing "
+                "error up to +-0.5 s, about 0.1 m at the robots' speeds: coarse scoring only"
+            ),
+        }
+    return {"kind": "none", "note": "no ground truth for this robot in this folder"}
+
+
+def _sensor_calibration_metadata(name: str, cal: MrclamCalibration) -> dict[str, Any]:
+    """Metadata "sensor_calibration": the option's name, the corrections and what they mean."""
+    return {
+        "name": name,
+        **asdict(cal),
+        "note": (
+            "recorded range z = range_scale*r*cos(bearing) + range_offset_m, converted "
+            "to r; odometry times + odometry_delay_s, v * velocity_scale, "
+            "omega * omega_scale (hardware/datasets/mrclam.py)"
+            if name != "none"
+            else "the files' values, uncorrected"
+        ),
     }
-    if gt_t is not None:
-        streams[GroundTruthPose] = groundtruth_stream(gt_t, gt_p)
-    streams[RangeBearing] = _range_bearing_stream(rb[:, 0], rb_ids, rb_range, rb[:, 3])
 
+
+def _dataset_metadata(
+    name: str, number: int, robot: _Robot, odo: np.ndarray, cal: MrclamCalibration
+) -> dict[str, Any]:
+    """Metadata "dataset": description, time base and span, counts, files and notes."""
+    rb = robot.sightings
+    gt_t = robot.truth[0] if robot.truth is not None else np.empty(0)
     counts = {
         "VelocityOdometry": len(odo),
-        "GroundTruthPose": 0 if gt_t is None else len(gt_t),
+        "GroundTruthPose": len(gt_t),
         "RangeBearing": len(rb),
     }
-    times = [odo[0, 0], odo[-1, 0]] + ([gt_t[0], gt_t[-1]] if gt_t is not None else [])
-    if len(rb):
-        times += [rb[0, 0], rb[-1, 0]]
-    name = f"{folder.name}/robot{robot}"
+    return {
+        "name": name,
+        "description": (
+            "UTIAS MRCLAM (Leung et al., IJRR 30(8), 2011): iRobot Create with a "
+            "monocular camera, 15 barcoded landmarks, Vicon ground truth"
+        ),
+        "robot": number,
+        "time_base": (
+            "Unix epoch seconds, as in the files; odometry + "
+            f"{cal.odometry_delay_s} s (sensor_calibration)"
+        ),
+        **span_and_counts(counts, odo[:, 0], gt_t, rb[:, 0]),
+        "measurement_rows": robot.measurement_rows,
+        "files": robot.files,
+        "notes": robot.notes,
+    }
+
+
+def _metadata(
+    name: str,
+    options: MrclamOptions,
+    folder: Path,
+    robot: _Robot,
+    odo: np.ndarray,
+    cal: MrclamCalibration,
+) -> dict[str, dict[str, Any]]:
+    """All the metadata (module docstring); "localizer_settings" with the calibration."""
+    if robot.truth is not None:
+        initial = interpolate_pose(*robot.truth, float(odo[0, 0]))
+    else:
+        initial = (0.0, 0.0, 0.0)
+    ids = robot.landmark_ids.tolist()
     metadata: dict[str, dict[str, Any]] = {
-        "config": {
-            "format": "mrclam",
-            "path": str(folder.resolve()),
-            **options_dict(options),
-            "initial_pose": list(initial),
-            "initial_pose_t": t_odo0,
-        },
-        "dataset": {
-            "name": name,
-            "description": (
-                "UTIAS MRCLAM (Leung et al., IJRR 30(8), 2011): iRobot Create with a "
-                "monocular camera, 15 barcoded landmarks, Vicon ground truth"
-            ),
-            "robot": robot,
-            "time_base": (
-                "Unix epoch seconds, as in the files; odometry + "
-                f"{cal.odometry_delay_s} s (sensor_calibration)"
-            ),
-            "t_first": float(min(times)),
-            "t_last": float(max(times)),
-            "counts": counts,
-            "measurement_rows": len(meas),
-            "files": files,
-            "notes": notes,
-        },
+        "config": config_metadata(
+            "mrclam", folder, options, initial, initial_pose_t=float(odo[0, 0])
+        ),
+        "dataset": _dataset_metadata(name, options.robot, robot, odo, cal),
         "landmarks": {
             str(i): [float(x), float(y)]
-            for i, (x, y) in zip(lm_ids.tolist(), lm.data[:, 1:3].tolist(), strict=True)
+            for i, (x, y) in zip(ids, robot.landmarks[:, 1:3].tolist(), strict=True)
         },
         "landmark_std": {
             str(i): [float(sx), float(sy)]
-            for i, (sx, sy) in zip(lm_ids.tolist(), lm.data[:, 3:5].tolist(), strict=True)
+            for i, (sx, sy) in zip(ids, robot.landmarks[:, 3:5].tolist(), strict=True)
         },
-        "skipped": skipped,
-        "groundtruth": groundtruth,
-        "sensor_calibration": {
-            "name": options.calibration,
-            **asdict(cal),
-            "note": (
-                "recorded range z = range_scale*r*cos(bearing) + range_offset_m, converted "
-                "to r; odometry times + odometry_delay_s, v * velocity_scale, "
-                "omega * omega_scale (hardware/datasets/mrclam.py)"
-                if options.calibration != "none"
-                else "the files' values, uncorrected"
-            ),
-        },
+        "skipped": robot.skipped,
+        "groundtruth": _groundtruth_metadata(robot.gt_kind, robot.files, options.robot),
+        "sensor_calibration": _sensor_calibration_metadata(options.calibration, cal),
     }
     if options.calibration == "dataset1":
         metadata["localizer_settings"] = dict(DATASET1_LOCALIZER_SETTINGS)
+    return metadata
+
+
+def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
+    """One robot of an MRCLAM folder (module docstring): read and check its files, apply
+    the calibration, build the streams and the metadata."""
+    folder = require_folder(path, "mrclam")
+    _check_robot(folder, options.robot)
+    robot = _read_robot(folder, options)
+    cal = DATASET1_CALIBRATION if options.calibration == "dataset1" else MrclamCalibration()
+    odo, ranges = _calibrate(robot, cal)
+    rb = robot.sightings
+    streams = tie_ordered_streams(
+        (VelocityOdometry, velocity_stream(odo[:, 0], odo[:, 1], odo[:, 2])),
+        (RangeBearing, range_bearing_stream(rb[:, 0], robot.sighting_ids, ranges, rb[:, 3])),
+        robot.truth,
+    )
+    name = f"{folder.name}/robot{options.robot}"
+    metadata = _metadata(name, options, folder, robot, odo, cal)
     calibration = WalkerCalibration(
         track_m=CREATE_TRACK_M,
         frame_width_m=CREATE_DIAMETER_M,
         frame_length_m=CREATE_DIAMETER_M,
     )
-    arrays = {"landmark_ids": lm_ids, "landmark_xy": lm.data[:, 1:3].copy()}
+    arrays = {
+        "landmark_ids": robot.landmark_ids,
+        "landmark_xy": robot.landmarks[:, 1:3].copy(),
+    }
     return Dataset(name, calibration, metadata, streams, arrays)
 
 

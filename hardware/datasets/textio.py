@@ -37,6 +37,23 @@ def find_optional(folder: Path, name: str) -> Path | None:
         return None
 
 
+class FolderFiles:
+    """The files of a dataset folder, found by name (`find_file`) and remembered as found:
+    `found` {name: path} is what metadata "dataset" "files" records."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.found: dict[str, str] = {}
+
+    def find(self, name: str) -> Path:
+        path = find_file(self.folder, name)
+        self.found[name] = str(path)
+        return path
+
+    def has(self, name: str) -> bool:
+        return find_optional(self.folder, name) is not None
+
+
 def iter_lines(path: Path) -> Iterator[tuple[int, str]]:
     """(line number from 1, line without its end) of a plain or gzipped text file."""
     try:
