@@ -45,7 +45,6 @@ Calibration: the walker defaults with track_m = 2H = 1.52 m (the rear track).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -58,10 +57,16 @@ from hardware.datasets.base import (
     DatasetError,
     as_float,
     check_choice,
-    options_dict,
-    sorted_stream_order,
+    coerce_option,
+    config_metadata,
+    range_bearing_stream,
+    require_folder,
+    sorted_by_time,
+    span_and_counts,
+    tie_ordered_streams,
+    velocity_stream,
 )
-from hardware.datasets.textio import find_file, read_table
+from hardware.datasets.textio import FolderFiles, read_table
 from hardware.geometry import wrap1
 from hardware.messages import RangeBearing, VelocityOdometry
 from hardware.registry import Spec
@@ -85,9 +90,7 @@ class VictoriaParkOptions:
 
     def __post_init__(self) -> None:
         check_choice("measurements_from", self.measurements_from, ORIGINS)
-        object.__setattr__(
-            self, "initial_heading_deg", as_float("initial_heading_deg", self.initial_heading_deg)
-        )
+        coerce_option(self, "initial_heading_deg", as_float)
 
 
 def rear_axle_velocity(speed: np.ndarray, steering: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -106,79 +109,78 @@ def laser_to_rear_axle(rng: np.ndarray, bearing_laser: np.ndarray) -> tuple[np.n
     return np.hypot(px, py), np.arctan2(py, px)
 
 
-def _velocity_stream(t: np.ndarray, v: np.ndarray, w: np.ndarray):
-    def gen() -> Iterator[VelocityOdometry]:
-        for ti, vi, wi in zip(t.tolist(), v.tolist(), w.tolist(), strict=True):
-            yield VelocityOdometry(ti, vi, wi)
-
-    return gen
+FILES = ("aa3_dr.csv", "tree_detections.csv", "aa3_gpsx.csv")
 
 
-def _tree_stream(t: np.ndarray, r: np.ndarray, b: np.ndarray):
-    def gen() -> Iterator[RangeBearing]:
-        for ti, ri, bi in zip(t.tolist(), r.tolist(), b.tolist(), strict=True):
-            yield RangeBearing(ti, -1, ri, bi)
-
-    return gen
-
-
-def _sorted(data: np.ndarray, col: int, name: str, notes: list[str]) -> np.ndarray:
-    order, back = sorted_stream_order(data[:, col])
-    if order is None:
-        return data
-    notes.append(f"{name}: {back} timestamps step back; rows stably sorted by time")
-    return data[order]
-
-
-def open_victoria_park(options: VictoriaParkOptions, path: Path) -> Dataset:
-    folder = Path(path)
-    if not folder.is_dir():
-        what = "missing folder" if not folder.exists() else "not a folder"
-        raise DatasetError(f"{folder}: {what} (victoria-park takes the dataset folder)")
-    notes: list[str] = []
-    files = {
-        name: find_file(folder, name)
-        for name in ("aa3_dr.csv", "tree_detections.csv", "aa3_gpsx.csv")
-    }
-    dr = _sorted(read_table(files["aa3_dr.csv"], 3, delimiter=",").data, 0, "aa3_dr", notes)
-    trees = _sorted(
-        read_table(files["tree_detections.csv"], 5, delimiter=",").data, 1, "trees", notes
+def _read(files: FolderFiles, notes: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The odometry, tree and GPS tables, each stably sorted by time (all three files are
+    found before any is read)."""
+    dr, trees, gps = [files.find(name) for name in FILES]
+    return (
+        sorted_by_time(read_table(dr, 3, delimiter=",").data, "aa3_dr", notes),
+        sorted_by_time(read_table(trees, 5, delimiter=",").data, "trees", notes, col=1),
+        sorted_by_time(read_table(gps, 3, delimiter=",").data, "gps", notes),
     )
-    gps = _sorted(read_table(files["aa3_gpsx.csv"], 3, delimiter=",").data, 0, "gps", notes)
 
+
+def _odometry(dr: np.ndarray, path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, v, ω) of the rear-axle centre from the odometry rows; a DatasetError at a
+    steering angle of ±90°, where the model has no speed."""
     steer = dr[:, 2]
     bad = np.nonzero(np.abs(steer) >= 0.5 * math.pi - 1e-6)[0]
     if len(bad):
-        raise DatasetError(
-            f"{files['aa3_dr.csv']}: data row {bad[0] + 1}: steering angle {steer[bad[0]]} rad"
-        )
-    t_dr = dr[:, 0] / 1000.0
+        raise DatasetError(f"{path}: data row {bad[0] + 1}: steering angle {steer[bad[0]]} rad")
     v, w = rear_axle_velocity(dr[:, 1], steer)
+    return dr[:, 0] / 1000.0, v, w
 
-    t_tree = trees[:, 1]
-    if options.measurements_from == "rear-axle":
-        rng, brg = laser_to_rear_axle(trees[:, 2], trees[:, 3])
-    else:
-        rng, brg = trees[:, 2].copy(), trees[:, 3] - 0.5 * math.pi
-    gps_rows = np.column_stack([gps[:, 0] / 1000.0, gps[:, 1], gps[:, 2]])
 
+def _detections(trees: np.ndarray, origin: str) -> tuple[np.ndarray, np.ndarray]:
+    """Range and bearing (CCW from the heading) of each tree from `origin` (module
+    docstring: "rear-axle" or "laser")."""
+    if origin == "rear-axle":
+        return laser_to_rear_axle(trees[:, 2], trees[:, 3])
+    return trees[:, 2].copy(), trees[:, 3] - 0.5 * math.pi
+
+
+def _vehicle_metadata() -> dict[str, Any]:
+    """Metadata "dataset" "vehicle": the car's geometry and odometry model."""
+    return {
+        "wheelbase_L_m": WHEELBASE_M,
+        "encoder_offset_H_m": ENCODER_OFFSET_M,
+        "laser_a_m": LASER_AHEAD_OF_FRONT_AXLE_M,
+        "laser_b_m": LASER_LEFT_M,
+        "laser_on_vehicle_xy_m": [LASER_X_M, LASER_LEFT_M],
+        "reference_point": "rear-axle centre",
+        "odometry_model": "v = v_enc / (1 - tan(steer) H / L); omega = v tan(steer) / L",
+    }
+
+
+def _metadata(
+    options: VictoriaParkOptions,
+    folder: Path,
+    t_dr: np.ndarray,
+    trees: np.ndarray,
+    gps_rows: np.ndarray,
+    files: FolderFiles,
+    notes: list[str],
+) -> dict[str, dict[str, Any]]:
+    """All the metadata (module docstring); initial_pose is the first GPS fix."""
     initial = (
         float(gps_rows[0, 1]),
         float(gps_rows[0, 2]),
         wrap1(math.radians(options.initial_heading_deg)),
     )
-    counts = {"VelocityOdometry": len(dr), "RangeBearing": len(trees)}
-    all_t = np.r_[t_dr[[0, -1]], t_tree[[0, -1]]]
-    metadata: dict[str, dict[str, Any]] = {
-        "config": {
-            "format": "victoria-park",
-            "path": str(folder.resolve()),
-            **options_dict(options),
-            "initial_pose": list(initial),
-            "initial_pose_source": (
+    counts = {"VelocityOdometry": len(t_dr), "RangeBearing": len(trees)}
+    return {
+        "config": config_metadata(
+            "victoria-park",
+            folder,
+            options,
+            initial,
+            initial_pose_source=(
                 "first GPS fix and the commonly used initial heading; not ground truth"
             ),
-        },
+        ),
         "dataset": {
             "name": "victoria_park",
             "description": (
@@ -186,23 +188,13 @@ def open_victoria_park(options: VictoriaParkOptions, path: Path) -> Dataset:
                 "wheel speed + steering, laser tree detections, GPS"
             ),
             "time_base": "seconds of the dataset's clock (aa3_dr time / 1000), not offset",
-            "t_first": float(all_t.min()),
-            "t_last": float(all_t.max()),
-            "counts": counts,
+            **span_and_counts(counts, t_dr, trees[:, 1]),
             "laser_scans_with_trees": len(np.unique(trees[:, 0])),
-            "vehicle": {
-                "wheelbase_L_m": WHEELBASE_M,
-                "encoder_offset_H_m": ENCODER_OFFSET_M,
-                "laser_a_m": LASER_AHEAD_OF_FRONT_AXLE_M,
-                "laser_b_m": LASER_LEFT_M,
-                "laser_on_vehicle_xy_m": [LASER_X_M, LASER_LEFT_M],
-                "reference_point": "rear-axle centre",
-                "odometry_model": "v = v_enc / (1 - tan(steer) H / L); omega = v tan(steer) / L",
-            },
+            "vehicle": _vehicle_metadata(),
             "measurements_from": options.measurements_from,
             "landmark_id": "-1 on every RangeBearing: association unknown",
             "tree_diameters": "in Dataset.arrays['tree_diameter_m'] only (not in the log)",
-            "files": {k: str(p) for k, p in files.items()},
+            "files": files.found,
             "notes": notes,
         },
         "gps": {
@@ -215,10 +207,24 @@ def open_victoria_park(options: VictoriaParkOptions, path: Path) -> Dataset:
         },
         "groundtruth": {"kind": "none", "note": "only GPS positions, see metadata 'gps'"},
     }
-    streams: dict[type, Any] = {
-        VelocityOdometry: _velocity_stream(t_dr, v, w),
-        RangeBearing: _tree_stream(t_tree, rng, brg),
-    }
+
+
+def open_victoria_park(options: VictoriaParkOptions, path: Path) -> Dataset:
+    """The Victoria Park folder (module docstring): read the three tables, convert the
+    odometry and the detections to the rear-axle centre, build the streams and metadata."""
+    folder = require_folder(path, "victoria-park")
+    notes: list[str] = []
+    files = FolderFiles(folder)
+    dr, trees, gps = _read(files, notes)
+    t_dr, v, w = _odometry(dr, files.found["aa3_dr.csv"])
+    rng, brg = _detections(trees, options.measurements_from)
+    gps_rows = np.column_stack([gps[:, 0] / 1000.0, gps[:, 1], gps[:, 2]])
+    unknown = np.full(len(trees), -1, dtype=np.int64)
+    streams = tie_ordered_streams(
+        (VelocityOdometry, velocity_stream(t_dr, v, w)),
+        (RangeBearing, range_bearing_stream(trees[:, 1], unknown, rng, brg)),
+    )
+    metadata = _metadata(options, folder, t_dr, trees, gps_rows, files, notes)
     arrays = {
         "tree_diameter_m": trees[:, 4].copy(),
         "tree_scan_index": trees[:, 0].astype(np.int64),
