@@ -128,7 +128,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -140,12 +140,15 @@ from hardware.datasets.base import (
     DatasetError,
     as_float,
     check_choice,
-    groundtruth_stream,
-    options_dict,
+    coerce_option,
+    config_metadata,
+    span_and_counts,
+    tie_ordered_streams,
+    velocity_stream,
 )
 from hardware.datasets.textio import iter_lines, parse_floats, read_table
 from hardware.geometry import arc_end1, between1, compose1, wrap1
-from hardware.messages import GroundTruthPose, LaserScan, VelocityOdometry
+from hardware.messages import LaserScan, VelocityOdometry
 from hardware.registry import Spec
 
 ODOMETRY_MODES = ("smooth", "exact")
@@ -178,12 +181,8 @@ class CarmenOptions:
     def __post_init__(self) -> None:
         check_choice("odometry", self.odometry, ODOMETRY_MODES)
         check_choice("timestamps", self.timestamps, TIMESTAMP_MODES)
-        object.__setattr__(
-            self, "time_offset", as_float("time_offset", self.time_offset, allow_none=True)
-        )
-        object.__setattr__(
-            self, "range_max", as_float("range_max", self.range_max, allow_none=True)
-        )
+        coerce_option(self, "time_offset", as_float, allow_none=True)
+        coerce_option(self, "range_max", as_float, allow_none=True)
         period = as_float("scan_period", self.scan_period)
         if period is None or period <= 0:
             raise ValueError(f"scan_period must be > 0, got {self.scan_period!r}")
@@ -230,7 +229,45 @@ class _Log:
     resets: int = 0
 
 
+def _odom_pose(path: Path, lineno: int, tok: list[str]) -> tuple[tuple[float, float, float], float]:
+    """(x y θ, ipc timestamp) of an ODOM line's fields `tok`."""
+    if len(tok) < 10:
+        raise DatasetError(
+            f"{path}: line {lineno}: ODOM needs 9 fields after the tag, got {len(tok) - 1}"
+        )
+    x, y, th, _tv, _rv, _acc, t = parse_floats(path, lineno, tok[1:8])
+    return (x, y, th), t
+
+
+def _flaser_scan(path: Path, lineno: int, tok: list[str], beams: int | None) -> _Scan:
+    """The scan of a FLASER line's fields `tok`; `beams` is the earlier scans' beam count
+    (None for the first scan), which every scan must have."""
+    if len(tok) < 2:
+        raise DatasetError(f"{path}: line {lineno}: FLASER without a beam count")
+    try:
+        n = int(tok[1])
+    except ValueError:
+        raise DatasetError(
+            f"{path}: line {lineno}: FLASER beam count is not an integer: {tok[1]!r}"
+        ) from None
+    if n < 2:
+        raise DatasetError(f"{path}: line {lineno}: FLASER with {n} beams")
+    if len(tok) < n + 11:
+        raise DatasetError(
+            f"{path}: line {lineno}: FLASER with {n} beams needs {n + 10} fields "
+            f"after the tag, got {len(tok) - 1}"
+        )
+    if beams is not None and beams != n:
+        raise DatasetError(
+            f"{path}: line {lineno}: FLASER with {n} beams, earlier scans have {beams}"
+        )
+    vals = parse_floats(path, lineno, [*tok[2 : 2 + n + 6], tok[8 + n]])
+    return _Scan(vals[-1], vals[:n], (vals[n], vals[n + 1], vals[n + 2]), lineno)
+
+
 def _parse(path: Path) -> _Log:
+    """The log's ODOM chain, scans and their reset lines, in file order (module
+    docstring); PARAM lines recorded, other records counted."""
     log = _Log()
     frame = 0
     pending_scan: _Scan | None = None  # scan whose reset line may come next
@@ -241,58 +278,30 @@ def _parse(path: Path) -> _Log:
             continue
         kind = tok[0]
         if kind == "ODOM":
-            if len(tok) < 10:
-                raise DatasetError(
-                    f"{path}: line {lineno}: ODOM needs 9 fields after the tag, got {len(tok) - 1}"
-                )
-            x, y, th, _tv, _rv, _acc, t = parse_floats(path, lineno, tok[1:8])
+            pose, t = _odom_pose(path, lineno, tok)
             log.odom_lines += 1
-            pose = (x, y, th)
             if pending_scan is not None and pose == pending_scan.pose:
                 # reset: odometry re-anchored at the corrected scan pose
                 frame += 1
                 pending_scan.reset_frame = frame
                 pending_scan.reset_pose = pose
                 log.resets += 1
-                pending_scan = None
-                continue
+            else:
+                log.nodes.append(_Node(pose, t, frame, lineno))
+                segment.append(len(log.nodes) - 1)
             pending_scan = None
-            log.nodes.append(_Node(pose, t, frame, lineno))
-            segment.append(len(log.nodes) - 1)
         elif kind == "FLASER":
-            if len(tok) < 2:
-                raise DatasetError(f"{path}: line {lineno}: FLASER without a beam count")
-            try:
-                n = int(tok[1])
-            except ValueError:
-                raise DatasetError(
-                    f"{path}: line {lineno}: FLASER beam count is not an integer: {tok[1]!r}"
-                ) from None
-            if n < 2:
-                raise DatasetError(f"{path}: line {lineno}: FLASER with {n} beams")
-            if len(tok) < n + 11:
-                raise DatasetError(
-                    f"{path}: line {lineno}: FLASER with {n} beams needs {n + 10} fields "
-                    f"after the tag, got {len(tok) - 1}"
-                )
-            if log.scans and len(log.scans[0].ranges) != n:
-                raise DatasetError(
-                    f"{path}: line {lineno}: FLASER with {n} beams, earlier scans have "
-                    f"{len(log.scans[0].ranges)}"
-                )
-            vals = parse_floats(path, lineno, [*tok[2 : 2 + n + 6], tok[8 + n]])
-            scan = _Scan(vals[-1], vals[:n], (vals[n], vals[n + 1], vals[n + 2]), lineno)
+            scan = _flaser_scan(path, lineno, tok, len(log.scans[0].ranges) if log.scans else None)
             if segment and log.nodes[segment[-1]].t_logged == scan.t_logged:
                 scan.anchor = segment[-1]
             log.scans.append(scan)
             log.scan_nodes.append(segment)
             segment = []
             pending_scan = scan
+        elif kind == "PARAM" and len(tok) >= 3:
+            log.params.setdefault(tok[1], tok[2])
         else:
-            if kind == "PARAM" and len(tok) >= 3:
-                log.params.setdefault(tok[1], tok[2])
-            else:
-                log.ignored[kind] = log.ignored.get(kind, 0) + 1
+            log.ignored[kind] = log.ignored.get(kind, 0) + 1
     log.scan_nodes.append(segment)  # nodes after the last scan
     return log
 
@@ -576,77 +585,103 @@ def _close_on_longest(rel: list[tuple[float, float, float]]) -> list[list[tuple[
     return pieces
 
 
+@dataclass
+class _OdometryStats:
+    """What `_odometry` did (metadata "dataset" "odometry")."""
+
+    mode: str
+    time_points: int = 0
+    intervals: int = 0
+    messages: int = 0
+    gaps: int = 0
+    heading_swings: int = 0
+    runs: int = 0
+    runs_adjusted: int = 0
+    runs_closed_by_two_arcs: int = 0
+    max_length_change_m: float = 0.0
+    max_heading_change_rad: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """The statistics; those of the runs only in smooth mode."""
+        smooth_only = (
+            "runs",
+            "runs_adjusted",
+            "runs_closed_by_two_arcs",
+            "max_length_change_m",
+            "max_heading_change_rad",
+        )
+        return {
+            k: v for k, v in asdict(self).items() if self.mode == "smooth" or k not in smooth_only
+        }
+
+
+def _smooth_pieces(
+    rel: list[tuple[float, float, float]], stats: _OdometryStats
+) -> list[list[tuple[float, float]]]:
+    """Pieces per interval of one run in smooth mode (module docstring): the adjusted
+    arcs, or two arcs on the longest interval where the adjustment fails, or is large
+    and swings the heading more than the two arcs would."""
+    if not rel:
+        return []
+    solved = _smooth_run(rel)
+    closing = None
+    if solved is not None and (solved[1] > SMOOTH_MAX_DS_M or solved[2] > SMOOTH_MAX_DTH_RAD):
+        closing = _close_on_longest(rel)
+        if solved[2] > _swing(closing, rel):
+            solved = None
+    if solved is None:
+        stats.runs_closed_by_two_arcs += 1
+        return closing if closing is not None else _close_on_longest(rel)
+    stats.runs_adjusted += 1
+    stats.max_length_change_m = max(stats.max_length_change_m, solved[1])
+    stats.max_heading_change_rad = max(stats.max_heading_change_rad, solved[2])
+    return [[arc] for arc in solved[0]]
+
+
+def _emit(
+    rows: list[tuple[float, float, float]],
+    t0: float,
+    t1: float,
+    pieces: list[tuple[float, float]],
+    dth: float,
+    stats: _OdometryStats,
+) -> None:
+    """Rows (t, v, ω) of an interval from t0 to t1 moved as `pieces` (arc length, heading
+    change) of equal duration; two pieces turning beyond the net `dth` count as a swing."""
+    if len(pieces) == 2 and max(abs(p[1]) for p in pieces) > abs(dth) + SWING_RAD:
+        stats.heading_swings += 1
+    times = [t0 + j * (t1 - t0) / len(pieces) for j in range(len(pieces))] + [t1]
+    for j, (ds, da) in enumerate(pieces):
+        # the interval exactly as a localizer computes it (next.t - this.t)
+        dt = times[j + 1] - times[j]
+        rows.append((times[j], ds / dt, da / dt))
+
+
 def _odometry(log: _Log, mode: str) -> tuple[np.ndarray, dict[str, Any]]:
-    """VelocityOdometry rows (t, v, ω) and statistics (see the module docstring)."""
+    """VelocityOdometry rows (t, v, ω) and statistics (see the module docstring): each
+    run's intervals as pieces, then a standstill where the run ends (a gap or the end)."""
     pts = _time_points(log)
-    rows: list[tuple[float, float, float]] = []
-    gaps = swings = intervals = by_adjustment = by_two_arcs = 0
-    max_ds = max_dth = 0.0
-
-    def emit(t0: float, t1: float, pieces: list[tuple[float, float]], dth: float) -> None:
-        nonlocal swings
-        if len(pieces) == 2 and max(abs(p[1]) for p in pieces) > abs(dth) + SWING_RAD:
-            swings += 1
-        times = [t0 + j * (t1 - t0) / len(pieces) for j in range(len(pieces))] + [t1]
-        for j, (ds, da) in enumerate(pieces):
-            # the interval exactly as a localizer computes it (next.t - this.t)
-            dt = times[j + 1] - times[j]
-            rows.append((times[j], ds / dt, da / dt))
-
     runs = _runs(pts)
+    rows: list[tuple[float, float, float]] = []
+    stats = _OdometryStats(mode, time_points=len(pts), runs=len(runs))
     for r, run in enumerate(runs):
-        rel = [between1(pts[i].pose_out, pts[j].pose_in) for i, j in itertools.pairwise(run)]
-        intervals += len(rel)
-        arcs = None
-        closing: list[list[tuple[float, float]]] = []
-        if mode == "smooth" and rel:
-            solved = _smooth_run(rel)
-            if solved is not None and (
-                solved[1] > SMOOTH_MAX_DS_M or solved[2] > SMOOTH_MAX_DTH_RAD
-            ):
-                # large adjustment: take it only if closing with two arcs swings more
-                closing = _close_on_longest(rel)
-                if solved[2] > _swing(closing, rel):
-                    solved = None
-            if solved is not None:
-                arcs = solved[0]
-                by_adjustment += 1
-                max_ds = max(max_ds, solved[1])
-                max_dth = max(max_dth, solved[2])
-            else:
-                by_two_arcs += 1
-                closing = _close_on_longest(rel)
-        for k, (i, j) in enumerate(itertools.pairwise(run)):
-            dx, dy, dth = rel[k]
-            if mode == "exact":
-                emit(pts[i].t, pts[j].t, exact_pieces(dx, dy, dth), dth)
-            elif arcs is not None:
-                emit(pts[i].t, pts[j].t, [arcs[k]], dth)
-            else:
-                emit(pts[i].t, pts[j].t, closing[k], rel[k][2])
+        pairs = list(itertools.pairwise(run))
+        rel = [between1(pts[i].pose_out, pts[j].pose_in) for i, j in pairs]
+        stats.intervals += len(rel)
+        if mode == "exact":
+            pieces = [exact_pieces(*m) for m in rel]
+        else:
+            pieces = _smooth_pieces(rel, stats)
+        for (i, j), p, m in zip(pairs, pieces, rel, strict=True):
+            _emit(rows, pts[i].t, pts[j].t, p, m[2], stats)
         joined = r + 1 < len(runs) and runs[r + 1][0] == run[-1]
         if not joined:
             # a gap (raw motion unknown until the next run) or the end of the log
             rows.append((pts[run[-1]].t, 0.0, 0.0))
             if r + 1 < len(runs):
-                gaps += 1
-    stats: dict[str, Any] = {
-        "mode": mode,
-        "time_points": len(pts),
-        "intervals": intervals,
-        "messages": len(rows),
-        "gaps": gaps,
-        "heading_swings": swings,
-    }
-    if mode == "smooth":
-        stats.update(
-            runs=len(runs),
-            runs_adjusted=by_adjustment,
-            runs_closed_by_two_arcs=by_two_arcs,
-            max_length_change_m=max_ds,
-            max_heading_change_rad=max_dth,
-        )
-    return np.array(rows, dtype=np.float64).reshape(-1, 3), stats
+                stats.gaps += 1
+    stats.messages = len(rows)
+    return np.array(rows, dtype=np.float64).reshape(-1, 3), stats.to_dict()
 
 
 # ---------------------------------------------------------------------------------------
@@ -690,14 +725,6 @@ def _scan_stream(times: np.ndarray, ranges: np.ndarray, step: float, range_max: 
     def gen() -> Iterator[LaserScan]:
         for t, r in zip(times.tolist(), ranges, strict=True):
             yield LaserScan(t, -0.5 * math.pi, step, r, range_max)
-
-    return gen
-
-
-def _velocity_stream(rows: np.ndarray):
-    def gen() -> Iterator[VelocityOdometry]:
-        for t, v, w in rows.tolist():
-            yield VelocityOdometry(t, v, w)
 
     return gen
 
@@ -750,19 +777,24 @@ def carmen_localizer_settings(n_beams: int) -> dict[str, Any]:
     }
 
 
-def open_carmen(options: CarmenOptions, path: Path) -> Dataset:
-    path = Path(path)
+def _read_log(path: Path) -> _Log:
+    """The parsed log; a DatasetError for a folder or a log without laser scans."""
     if path.is_dir():
         raise DatasetError(f"{path}: is a folder; carmen takes one log file")
     log = _parse(path)
     if not log.scans:
         raise DatasetError(f"{path}: no FLASER lines (not a CARMEN laser log?)")
-    scans = log.scans
-    n_beams = len(scans[0].ranges)
-    logged_scan = np.array([s.t_logged for s in scans], dtype=np.float64)
+    return log
 
+
+def _retime(
+    log: _Log, options: CarmenOptions, logged_scan: np.ndarray, path: Path
+) -> tuple[str, dict[str, Any]]:
+    """Give every scan and ODOM line its final time (option `timestamps`, module
+    docstring): the mode used and metadata "time_repair"; a DatasetError for negative
+    times."""
     mode = options.timestamps
-    equal_share = float(np.mean(np.diff(logged_scan) == 0)) if len(scans) > 1 else 0.0
+    equal_share = float(np.mean(np.diff(logged_scan) == 0)) if len(logged_scan) > 1 else 0.0
     if mode == "auto":
         mode = "synthetic" if equal_share > SYNTHETIC_THRESHOLD else "log"
     time_repair = _repair_times(log, mode, options.scan_period)
@@ -772,99 +804,137 @@ def open_carmen(options: CarmenOptions, path: Path) -> Dataset:
             if options.timestamps == "auto"
             else "requested"
         )
-    scan_t = np.array([s.t for s in scans], dtype=np.float64)
+    scan_t = np.array([s.t for s in log.scans], dtype=np.float64)
     node_t = np.array([n.t for n in log.nodes], dtype=np.float64)
     t_min = min(scan_t.min(), node_t.min() if len(node_t) else math.inf)
     if t_min < 0:
         raise DatasetError(f"{path}: negative timestamps ({t_min:g} s); use timestamps='synthetic'")
+    return mode, time_repair
 
-    corrected = log.resets > 0
-    odo, odo_stats = _odometry(log, options.odometry)
-    unanchored = sum(1 for s in scans if s.anchor is None)
-    odo_stats["scans_without_odometry"] = unanchored
 
-    ranges = np.array([s.ranges for s in scans], dtype=np.float32)
+def _scan_ranges(log: _Log, range_max: float | None) -> tuple[np.ndarray, float, float]:
+    """The scans' ranges (scans × beams, float32, read-only), the largest reading, and
+    range_max: the option, else the largest reading, as float32 (module docstring)."""
+    ranges = np.array([s.ranges for s in log.scans], dtype=np.float32)
     ranges.setflags(write=False)
     largest = float(np.max(ranges))
-    range_max = options.range_max if options.range_max is not None else largest
-    range_max = float(np.float32(range_max))
-    poses = np.array([s.pose for s in scans], dtype=np.float64)
+    limit = range_max if range_max is not None else largest
+    return ranges, largest, float(np.float32(limit))
 
-    streams: dict[type, Any] = {VelocityOdometry: _velocity_stream(odo)}
-    if corrected:
-        streams[GroundTruthPose] = groundtruth_stream(scan_t, poses)
-    streams[LaserScan] = _scan_stream(scan_t, ranges, beam_step(n_beams), range_max)
-    initial = _initial_pose(log, odo) if corrected else (0.0, 0.0, 0.0)
 
-    name = path.name.removesuffix(".gz").removesuffix(".log")
+def _relations_metadata(
+    rel_path: Path, time_offset: float | None, logged_scan: np.ndarray
+) -> dict[str, Any]:
+    """Metadata "relations": a relations file in this log's time base (time_offset given,
+    or from the timestamp CSV beside it)."""
+    if time_offset is not None:
+        offset, source = time_offset, "option time_offset"
+    else:
+        offset, source = _time_offset(rel_path, logged_scan)
+    return {
+        "columns": ["t1", "t2", "x", "y", "yaw"],
+        "rows": _relations(rel_path, offset),
+        "file": str(rel_path.resolve()),
+        "time_offset_s": offset,
+        "time_offset_source": source,
+        "note": (
+            "pose of the robot at t2 in its frame at t1 (Kuemmerle et al. 2009); "
+            "t = t_abs - time_offset_s, in this log's time base"
+        ),
+    }
+
+
+def _groundtruth_metadata(corrected: bool) -> dict[str, Any]:
+    """Metadata "groundtruth": the corrected scan poses, or none in a raw log."""
+    if not corrected:
+        return {"kind": "none", "note": "raw log: no reset lines"}
+    return {
+        "kind": "slam-corrected",
+        "source": "the x y theta of each FLASER line",
+        "note": (
+            "GMapping's corrected scan poses: the output of a SLAM system, a good "
+            "reference for mapping but not independent ground truth"
+        ),
+    }
+
+
+def _dataset_metadata(
+    name: str,
+    log: _Log,
+    mode: str,
+    time_repair: dict[str, Any],
+    odo: np.ndarray,
+    odo_stats: dict[str, Any],
+    scan_t: np.ndarray,
+    largest: float,
+    range_max: float,
+) -> dict[str, Any]:
+    """Metadata "dataset": time base and span, counts, the laser, the log's records, the
+    time repair and the odometry's statistics."""
+    corrected = log.resets > 0
+    n_beams = len(log.scans[0].ranges)
     counts = {
         "VelocityOdometry": len(odo),
-        "GroundTruthPose": len(scans) if corrected else 0,
-        "LaserScan": len(scans),
+        "GroundTruthPose": len(scan_t) if corrected else 0,
+        "LaserScan": len(scan_t),
     }
-    all_t = np.r_[scan_t, odo[:, 0]] if len(odo) else scan_t
+    return {
+        "name": name,
+        "description": "CARMEN laser log" + (" (GMapping-corrected)" if corrected else ""),
+        "time_base": (
+            "seconds as logged (ipc timestamps), repaired to be strictly increasing"
+            if mode == "log"
+            else "synthetic: scan k at (k + 1) * scan_period"
+        ),
+        **span_and_counts(counts, scan_t, odo[:, 0]),
+        "scans": len(scan_t),
+        "beams": n_beams,
+        "angle_increment_rad": beam_step(n_beams),
+        "range_max": range_max,
+        "largest_reading": largest,
+        "odom_lines": log.odom_lines,
+        "reset_lines": log.resets,
+        "corrected": corrected,
+        "time_repair": time_repair,
+        "odometry": odo_stats,
+        "params": dict(log.params),
+        "ignored_records": dict(log.ignored),
+    }
+
+
+def open_carmen(options: CarmenOptions, path: Path) -> Dataset:
+    """A CARMEN log (module docstring): parse and check it, repair its times, emit its
+    odometry, build the streams and the metadata."""
+    path = Path(path)
+    log = _read_log(path)
+    logged_scan = np.array([s.t_logged for s in log.scans], dtype=np.float64)
+    mode, time_repair = _retime(log, options, logged_scan, path)
+    scan_t = np.array([s.t for s in log.scans], dtype=np.float64)
+    corrected = log.resets > 0
+    odo, odo_stats = _odometry(log, options.odometry)
+    odo_stats["scans_without_odometry"] = sum(1 for s in log.scans if s.anchor is None)
+    ranges, largest, range_max = _scan_ranges(log, options.range_max)
+    poses = np.array([s.pose for s in log.scans], dtype=np.float64)
+    n_beams = ranges.shape[1]
+    streams = tie_ordered_streams(
+        (VelocityOdometry, velocity_stream(odo[:, 0], odo[:, 1], odo[:, 2])),
+        (LaserScan, _scan_stream(scan_t, ranges, beam_step(n_beams), range_max)),
+        (scan_t, poses) if corrected else None,
+    )
+    initial = _initial_pose(log, odo) if corrected else (0.0, 0.0, 0.0)
+    name = path.name.removesuffix(".gz").removesuffix(".log")
     metadata: dict[str, dict[str, Any]] = {
-        "config": {
-            "format": "carmen",
-            "path": str(path.resolve()),
-            **options_dict(options),
-            "initial_pose": list(initial),
-        },
-        "dataset": {
-            "name": name,
-            "description": "CARMEN laser log" + (" (GMapping-corrected)" if corrected else ""),
-            "time_base": (
-                "seconds as logged (ipc timestamps), repaired to be strictly increasing"
-                if mode == "log"
-                else "synthetic: scan k at (k + 1) * scan_period"
-            ),
-            "t_first": float(all_t.min()),
-            "t_last": float(all_t.max()),
-            "counts": counts,
-            "scans": len(scans),
-            "beams": n_beams,
-            "angle_increment_rad": beam_step(n_beams),
-            "range_max": range_max,
-            "largest_reading": largest,
-            "odom_lines": log.odom_lines,
-            "reset_lines": log.resets,
-            "corrected": corrected,
-            "time_repair": time_repair,
-            "odometry": odo_stats,
-            "params": dict(log.params),
-            "ignored_records": dict(log.ignored),
-        },
+        "config": config_metadata("carmen", path, options, initial),
+        "dataset": _dataset_metadata(
+            name, log, mode, time_repair, odo, odo_stats, scan_t, largest, range_max
+        ),
+        "groundtruth": _groundtruth_metadata(corrected),
+        "localizer_settings": carmen_localizer_settings(n_beams),
     }
-    if corrected:
-        metadata["groundtruth"] = {
-            "kind": "slam-corrected",
-            "source": "the x y theta of each FLASER line",
-            "note": (
-                "GMapping's corrected scan poses: the output of a SLAM system, a good "
-                "reference for mapping but not independent ground truth"
-            ),
-        }
-    else:
-        metadata["groundtruth"] = {"kind": "none", "note": "raw log: no reset lines"}
-    metadata["localizer_settings"] = carmen_localizer_settings(n_beams)
     if options.relations is not None:
-        rel_path = Path(options.relations)
-        if options.time_offset is not None:
-            offset, source = options.time_offset, "option time_offset"
-        else:
-            offset, source = _time_offset(rel_path, logged_scan)
-        rows = _relations(rel_path, offset)
-        metadata["relations"] = {
-            "columns": ["t1", "t2", "x", "y", "yaw"],
-            "rows": rows,
-            "file": str(rel_path.resolve()),
-            "time_offset_s": offset,
-            "time_offset_source": source,
-            "note": (
-                "pose of the robot at t2 in its frame at t1 (Kuemmerle et al. 2009); "
-                "t = t_abs - time_offset_s, in this log's time base"
-            ),
-        }
+        metadata["relations"] = _relations_metadata(
+            Path(options.relations), options.time_offset, logged_scan
+        )
     arrays = {
         "corrected_poses": poses,
         "scan_times": scan_t,
