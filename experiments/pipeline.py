@@ -272,32 +272,14 @@ def run_closed_loop(
     """
     period = 1.0 / loop.rate_hz
     on_frame = loop.trigger == "frame"
-    velocity = VelocityEstimator()
     if not isinstance(controller, SafeController):
         controller = SafeController(controller, pipeline.calibration, loop.safety)
-    off = pipeline.calibration.brake.torque_off_nm
-    applied = (off, off)
-    latest = {"map": -math.inf, "sensor": -math.inf}
+    steps = _ControlSteps(source, pipeline, controller, loop, record)
     k = 1  # timer trigger: step k is at k·period
     next_step = period  # frame trigger: the timer step if no frame comes first
-    rebuilt_at = 0.0
-
-    def advance(until: float, stop_at_frame: bool = False) -> DepthFrame | LaserScan | None:
-        frame = None
-        for msg in source.poll(until, stop_at_frame):
-            pipeline.feed(msg)
-            if isinstance(msg, DepthFrame | LaserScan):
-                latest["map"] = msg.t
-                frame = msg
-            elif isinstance(msg, EncoderTicks | VelocityOdometry):
-                latest["sensor"] = msg.t
-            if record is not None:
-                record(msg)
-        return frame
-
     while not source.done:
         until = next_step if on_frame else k * period
-        frame = advance(until, on_frame)
+        frame = steps.advance(until, on_frame)
         if source.done:
             break
         # the step's time: the timer's, or (frame trigger) the source's clock now — the
@@ -306,33 +288,79 @@ def run_closed_loop(
         # a live loop that fell behind its clock skips the steps it missed
         k = max(k + 1, math.floor(source.t / period) + 1)
         next_step = t + period
-        if loop.rebuild_in_background:
-            pipeline.finish_rebuild()
-        if loop.map_rebuild_s > 0 and t - rebuilt_at >= loop.map_rebuild_s:
-            pipeline.rebuild_map(background=loop.rebuild_in_background)
-            rebuilt_at = t
-        est = pipeline.localizer.estimate()
-        v, omega = velocity.update(t, est.pose)
-        inp = ControlInput(
-            t,
-            pipeline.mapper.occupied_xy(),
-            est.pose,
-            v,
-            omega,
-            brake_nm=applied,
-            pose_t=est.t if math.isfinite(est.t) else -math.inf,
-            map_t=latest["map"],
-            sensor_t=latest["sensor"],
-        )
-        cmd = controller.command(inp)
-        pipeline.feed(cmd)
-        if record is not None:
-            record(cmd)
+        steps.refresh_map(t)
+        cmd = steps.command(t)
         if loop.latency_s > 0:
-            advance(t + loop.latency_s)
+            steps.advance(t + loop.latency_s)
         sink.send(cmd)
-        applied = (cmd.left_nm, cmd.right_nm)
+        steps.applied = (cmd.left_nm, cmd.right_nm)
         if on_command is not None:
             on_command(cmd, frame)
         if progress is not None:
             progress(source.t)
+
+
+class _ControlSteps:
+    """What run_closed_loop keeps between its steps: feeding the source's messages, the
+    map rebuilds, the controller's input and its command."""
+
+    def __init__(
+        self,
+        source: TimedSource,
+        pipeline: Pipeline,
+        controller: Controller,
+        loop: LoopConfig,
+        record: Callable[[Message], None] | None,
+    ) -> None:
+        self.source, self.pipeline, self.controller = source, pipeline, controller
+        self.loop, self.record = loop, record
+        self.velocity = VelocityEstimator()
+        off = pipeline.calibration.brake.torque_off_nm
+        self.applied = (off, off)  # the torques of the last command sent
+        self.latest = {"map": -math.inf, "sensor": -math.inf}
+        self.rebuilt_at = 0.0
+
+    def advance(self, until: float, stop_at_frame: bool = False) -> DepthFrame | LaserScan | None:
+        """Feed the source's messages up to `until` (or its next frame); the last frame."""
+        frame = None
+        for msg in self.source.poll(until, stop_at_frame):
+            self.pipeline.feed(msg)
+            if isinstance(msg, DepthFrame | LaserScan):
+                self.latest["map"] = msg.t
+                frame = msg
+            elif isinstance(msg, EncoderTicks | VelocityOdometry):
+                self.latest["sensor"] = msg.t
+            if self.record is not None:
+                self.record(msg)
+        return frame
+
+    def refresh_map(self, t: float) -> None:
+        """Switch to a background rebuild that is ready; rebuild every map_rebuild_s."""
+        loop = self.loop
+        if loop.rebuild_in_background:
+            self.pipeline.finish_rebuild()
+        if loop.map_rebuild_s > 0 and t - self.rebuilt_at >= loop.map_rebuild_s:
+            self.pipeline.rebuild_map(background=loop.rebuild_in_background)
+            self.rebuilt_at = t
+
+    def command(self, t: float) -> BrakeCommand:
+        """The controller's command at t from the localizer's pose and the shared map
+        (fed to the pipeline and recorded)."""
+        est = self.pipeline.localizer.estimate()
+        v, omega = self.velocity.update(t, est.pose)
+        inp = ControlInput(
+            t,
+            self.pipeline.mapper.occupied_xy(),
+            est.pose,
+            v,
+            omega,
+            brake_nm=self.applied,
+            pose_t=est.t if math.isfinite(est.t) else -math.inf,
+            map_t=self.latest["map"],
+            sensor_t=self.latest["sensor"],
+        )
+        cmd = self.controller.command(inp)
+        self.pipeline.feed(cmd)
+        if self.record is not None:
+            self.record(cmd)
+        return cmd

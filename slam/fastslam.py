@@ -105,6 +105,10 @@ __all__ = [
     "tag_pose_jacobians",
 ]
 
+# an observation used in an update: landmark column, z, its noise R, and the particles
+# that had seen the landmark before this message (None: none had)
+_Used = tuple[int, np.ndarray, np.ndarray, "np.ndarray | None"]
+
 # 99.9 % quantiles of χ² with 2 and 3 degrees of freedom (scipy.stats.chi2.ppf(0.999, k)).
 CHI2_999 = {2: 13.815510557964274, 3: 16.26623619623813}
 
@@ -524,11 +528,26 @@ class FastSlam(Localizer):
         return float(mean @ np.linalg.solve(c, mean)) > self.gate
 
     def _update(self, items: list[tuple[int, np.ndarray]]) -> None:
-        v2 = self.config.version == 2
+        """One message's landmark observations: FastSLAM's four steps."""
         logw = self.log_weights.copy()
+        used, mu, sigma = self._fold_known(items, logw)
+        if not used:
+            return
+        if self.config.version == 2:
+            self._sample_poses(mu, sigma)
+        self._update_landmarks(used, logw)
+        self._normalise(logw)
+        self.track.amend(self._mean_pose())
+        self.revision += 1
+
+    def _fold_known(
+        self, items: list[tuple[int, np.ndarray]], logw: np.ndarray
+    ) -> tuple[list[_Used], np.ndarray, np.ndarray]:
+        """1. Fold the observations of known landmarks into the proposal (2.0) and the
+        weights (logw, in place); returns the observations used and the proposal."""
+        v2 = self.config.version == 2
         mu, sigma = self.poses, self.pending
-        # 1. fold the observations of known landmarks into the proposal and the weights
-        used: list[tuple[int, np.ndarray, np.ndarray, np.ndarray | None]] = []
+        used: list[_Used] = []
         for lid, z in items:
             r = self._noise(z)
             col = self._column(lid)
@@ -558,16 +577,19 @@ class FastSlam(Localizer):
             logw[rows] += _log_normal(nu, s) / self.config.weight_gain
             self.counts["updates"] += 1
             used.append((col, z, r, m.copy()))
-        if not used:
-            return
-        # 2. sample the poses from the proposal (2.0; 1.0 sampled them with the motion)
-        if v2:
-            e = self.rng.standard_normal((self.n, 3))
-            poses = mu + np.einsum("nij,nj->ni", _psd_cholesky3(sigma), e)
-            poses[:, 2] = wrap_angle(poses[:, 2])
-            self.poses = poses
-            self.pending = np.zeros_like(self.pending)
-        # 3. landmark EKF updates at the sampled poses; new landmarks from the inverse model
+        return used, mu, sigma
+
+    def _sample_poses(self, mu: np.ndarray, sigma: np.ndarray) -> None:
+        """2. Sample the poses from the proposal (2.0; 1.0 sampled them with the motion)."""
+        e = self.rng.standard_normal((self.n, 3))
+        poses = mu + np.einsum("nij,nj->ni", _psd_cholesky3(sigma), e)
+        poses[:, 2] = wrap_angle(poses[:, 2])
+        self.poses = poses
+        self.pending = np.zeros_like(self.pending)
+
+    def _update_landmarks(self, used: list[_Used], logw: np.ndarray) -> None:
+        """3. Landmark EKF updates at the sampled poses; new landmarks from the inverse
+        model; particles that met a landmark earlier in this message weighted now."""
         for col, z, r, m in used:
             seen = self.seen[:, col]
             if seen.any():
@@ -583,7 +605,6 @@ class FastSlam(Localizer):
                     lm[:, 2] = wrap_angle(lm[:, 2])
                 self.means[rows, col] = lm
                 self.covs[rows, col] = _symmetric(lc - k @ s @ np.swapaxes(k, 1, 2))
-                # particles that met this landmark earlier in this message: weight it now
                 fresh = seen if m is None else seen & ~m
                 if fresh.any():
                     ln = np.zeros(self.n)
@@ -596,7 +617,9 @@ class FastSlam(Localizer):
                 self.means[rows, col] = lm
                 self.covs[rows, col] = _symmetric(j_z @ r @ np.swapaxes(j_z, 1, 2))
                 self.seen[rows, col] = True
-        # 4. normalise, resample when the weights have degenerated
+
+    def _normalise(self, logw: np.ndarray) -> None:
+        """4. Normalise the weights; resample when they have degenerated."""
         logw -= logw.max()
         w = np.exp(logw)
         total = w.sum()
@@ -606,8 +629,6 @@ class FastSlam(Localizer):
         self.n_eff_min = min(self.n_eff_min, self.n_eff)
         if self.n_eff < self.config.resample_threshold * self.n:
             self._resample()
-        self.track.amend(self._mean_pose())
-        self.revision += 1
 
     def _resample(self) -> None:
         idx = systematic_resample(self._w, self.rng)

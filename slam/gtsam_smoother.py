@@ -616,70 +616,71 @@ class GtsamSmoother(Localizer):
         return 0.5 * (cov + cov.T)
 
     def _loop_closures(self, poses: np.ndarray) -> None:
-        c = self.config
-        n = len(self._scans)
-        cur = self._scans[-1]
-        here = poses[cur.kf]
-        # candidates: near enough for the absolute uncertainty (an upper bound of the
-        # relative one) ...
-        marginal = self.isam.marginalCovariance(X(cur.kf))
+        """Match the newest kept scan against the nearest old ones; add the accepted
+        matches as factors and update."""
+        here = poses[self._scans[-1].kf]
+        chosen, dist = self._loop_candidates(poses, here)
+        added = sum(self._try_loop(poses, here, i, float(dist[i])) for i in chosen)
+        if added:
+            self._flush()
+            for _ in range(self.config.loop.extra_updates):
+                self.isam.update()
+            self._after_update()
+
+    def _loop_candidates(self, poses: np.ndarray, here: np.ndarray) -> tuple[list[int], np.ndarray]:
+        """The kept scans to try (nearest first, one per submap, at most max_candidates):
+        near enough for the absolute uncertainty (an upper bound of the relative one);
+        with every old scan's distance."""
+        loop = self.config.loop
+        marginal = self.isam.marginalCovariance(X(self._scans[-1].kf))
         sxy = math.sqrt(max(float(np.linalg.eigvalsh(marginal[:2, :2])[-1]), 0.0))
-        reach = c.loop.search_radius_m + min(
-            c.loop.gate.window_sigmas * sxy, c.loop.gate.window_xy_m[1]
-        )
-        old = np.arange(n - c.loop.min_separation)
+        reach = loop.search_radius_m + min(loop.gate.window_sigmas * sxy, loop.gate.window_xy_m[1])
+        old = np.arange(len(self._scans) - loop.min_separation)
         kfs = np.array([self._scans[i].kf for i in old])
         dist = np.hypot(*(poses[kfs, :2] - here[:2]).T)
         near = old[dist <= reach]
-        order = near[np.argsort(dist[near])]
         chosen: list[int] = []
-        for i in order.tolist():
-            if all(abs(i - j) > 2 * c.loop.submap_half for j in chosen):
+        for i in near[np.argsort(dist[near])].tolist():
+            if all(abs(i - j) > 2 * loop.submap_half for j in chosen):
                 chosen.append(i)
-                if len(chosen) >= c.loop.max_candidates:
+                if len(chosen) >= loop.max_candidates:
                     break
-        added = 0
-        for i in chosen:
-            cand = self._scans[i]
-            # ... each searched within ± loop_window_sigmas of its relative uncertainty
-            guess = relative_guess(poses[cand.kf], here)
-            rel_cov = self._relative_covariance(cand.kf, cur.kf, guess)
-            sxy = math.sqrt(max(float(np.linalg.eigvalsh(rel_cov[:2, :2])[-1]), 0.0))
-            sth = math.sqrt(max(float(rel_cov[2, 2]), 0.0))
-            wxy = float(np.clip(c.loop.gate.window_sigmas * sxy, *c.loop.gate.window_xy_m))
-            wth = float(np.clip(c.loop.gate.window_sigmas * sth, *c.loop.gate.window_theta_rad))
-            if dist[i] > c.loop.search_radius_m + wxy:
-                continue
-            lo, hi = (
-                max(0, i - c.loop.submap_half),
-                min(n - c.loop.min_separation, i + c.loop.submap_half + 1),
-            )
-            ref = self._submap(poses, range(lo, hi), cand.kf)
-            res = match(ref, cur.scan, guess, wxy, wth, c.scan_match)
-            self.counts["loop_candidates"] += 1
-            ok = res.accepted(
-                c.loop.gate.min_inlier_fraction,
-                c.loop.gate.max_conflict_fraction,
-                c.loop.gate.max_ambiguity,
-            )
-            if ok and c.loop.gate_chi2 > 0:
-                # consistent with the estimate and its uncertainty (chi-squared gate)
-                d = relative_guess(guess, res.pose)
-                s_ = rel_cov + _body_covariance(res.covariance, res.pose[2])
-                ok = float(d @ np.linalg.solve(s_, d)) <= c.loop.gate_chi2
-                if not ok:
-                    self.counts["loop_gated"] += 1
-            if ok:
-                self._add_match(cand.kf, cur.kf, res, c.loop.gate.robust, c.loop.gate.robust_k)
-                self.counts["loop_closures"] += 1
-                added += 1
-            else:
-                self.counts["loop_rejected"] += 1
-        if added:
-            self._flush()
-            for _ in range(c.loop.extra_updates):
-                self.isam.update()
-            self._after_update()
+        return chosen, dist
+
+    def _try_loop(self, poses: np.ndarray, here: np.ndarray, i: int, dist: float) -> bool:
+        """Match the newest scan against kept scan i's submap, searched within ±
+        window_sigmas of their relative uncertainty; add the factor if the gate accepts
+        it (and the chi-squared gate, when on, finds it consistent)."""
+        c, loop = self.config, self.config.loop
+        n = len(self._scans)
+        cand, cur = self._scans[i], self._scans[-1]
+        guess = relative_guess(poses[cand.kf], here)
+        rel_cov = self._relative_covariance(cand.kf, cur.kf, guess)
+        sxy = math.sqrt(max(float(np.linalg.eigvalsh(rel_cov[:2, :2])[-1]), 0.0))
+        sth = math.sqrt(max(float(rel_cov[2, 2]), 0.0))
+        wxy = float(np.clip(loop.gate.window_sigmas * sxy, *loop.gate.window_xy_m))
+        wth = float(np.clip(loop.gate.window_sigmas * sth, *loop.gate.window_theta_rad))
+        if dist > loop.search_radius_m + wxy:
+            return False
+        lo = max(0, i - loop.submap_half)
+        hi = min(n - loop.min_separation, i + loop.submap_half + 1)
+        ref = self._submap(poses, range(lo, hi), cand.kf)
+        res = match(ref, cur.scan, guess, wxy, wth, c.scan_match)
+        self.counts["loop_candidates"] += 1
+        g = loop.gate
+        ok = res.accepted(g.min_inlier_fraction, g.max_conflict_fraction, g.max_ambiguity)
+        if ok and loop.gate_chi2 > 0:
+            d = relative_guess(guess, res.pose)
+            s_ = rel_cov + _body_covariance(res.covariance, res.pose[2])
+            ok = float(d @ np.linalg.solve(s_, d)) <= loop.gate_chi2
+            if not ok:
+                self.counts["loop_gated"] += 1
+        if not ok:
+            self.counts["loop_rejected"] += 1
+            return False
+        self._add_match(cand.kf, cur.kf, res, g.robust, g.robust_k)
+        self.counts["loop_closures"] += 1
+        return True
 
     def _flush(self) -> None:
         if self._graph.size() == 0 and self._values.size() == 0:

@@ -255,11 +255,12 @@ def _table_md(study: CourseStudy, table) -> str:
     )
 
 
-def _report(study: CourseStudy, out: Path, rows, table, files) -> Path:
+def _other_metrics_md(rows) -> str:
+    """The means per controller × localizer × surface of the metrics besides collisions."""
     groups: dict[tuple[str, str, str], list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault((r["controller"], r["localizer"], r["surface"]), []).append(r)
-    other = tables.markdown(
+    return tables.markdown(
         (
             "controller",
             "localizer",
@@ -286,6 +287,11 @@ def _report(study: CourseStudy, out: Path, rows, table, files) -> Path:
             for key, rs in groups.items()
         ],
     )
+
+
+def _report(study: CourseStudy, out: Path, rows, table, files) -> Path:
+    """report.md: the design, the collision table, the other metrics, the figures."""
+    other = _other_metrics_md(rows)
     settings = "; ".join(f"{n}: {v}" for n, v in study.settings.items()) or "defaults"
     lines = [
         f"# Course study: {study.course}",
