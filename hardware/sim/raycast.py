@@ -32,6 +32,14 @@ def _slab(o: np.ndarray, d: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, n
     return np.minimum(t1, t2), np.maximum(t1, t2)
 
 
+def _floor_depth(height: float, dz: np.ndarray, t_max: float) -> np.ndarray:
+    """Parameter t at which rays from `height` with world-z components dz (per unit t)
+    reach the floor z = 0; inf for rays that do not go down or get there beyond t_max."""
+    down = dz < 0
+    t = np.where(down, -height / np.where(down, dz, -1.0), np.inf)
+    return np.where(t <= t_max, t, np.inf)
+
+
 class BoxRayCaster:
     """First hits of rays with a fixed set of upright boxes (rows [cx, cy, yaw, sx, sy, z0, z1])."""
 
@@ -160,9 +168,7 @@ class BoxRayCaster:
                 hit = np.isfinite(t)
                 np.minimum.at(depth, pix[hit], t[hit])
         if floor and cam[2] > 0:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t_floor = np.where(dirs[:, 2] < 0, -cam[2] / dirs[:, 2], np.inf)
-            depth = np.minimum(depth, np.where(t_floor <= t_max, t_floor, np.inf))
+            depth = np.minimum(depth, _floor_depth(cam[2], dirs[:, 2], t_max))
         return depth.reshape(height, width).astype(np.float32)
 
     def _pixel_rects(
@@ -245,53 +251,90 @@ class BoxRayCaster:
         """
         xn = np.asarray(xn, dtype=float)
         yn = np.asarray(yn, dtype=float)
-        w, h = len(xn), len(yn)
         cam = np.asarray(centre, dtype=float)
         # Horizontal part of every column's ray per unit z-depth: (W, 2).
         hd = xn[:, None] * np.asarray(x_axis_xy, float) + np.asarray(z_axis_xy, float)
-        depth = np.full((w, h), np.inf, dtype=np.float32)
+        depth = np.full((len(xn), len(yn)), np.inf, dtype=np.float32)
         if len(self):
-            rx, ry = self.cx - cam[0], self.cy - cam[1]
-            dist = np.hypot(rx, ry)
-            # Cull boxes beyond the longest ray, and outside the horizontal field of view.
-            ray_len = np.hypot(hd[:, 0], hd[:, 1])
-            fwd = rx * z_axis_xy[0] + ry * z_axis_xy[1]
-            side = rx * x_axis_xy[0] + ry * x_axis_xy[1]
-            # A box is outside the view when it is entirely behind the left edge plane or
-            # entirely behind the right edge plane (planes through the camera, vertical).
-            nl = np.array([1.0, -xn[0]]) / np.hypot(1.0, xn[0])  # (side, fwd) inward normals
-            nr = np.array([-1.0, xn[-1]]) / np.hypot(1.0, xn[-1])
-            inside_l = side * nl[0] + fwd * nl[1] >= -self.radius
-            inside_r = side * nr[0] + fwd * nr[1] >= -self.radius
-            keep = np.flatnonzero(
-                (dist - self.radius <= t_max * ray_len.max()) & inside_l & inside_r
-            )
+            keep = self._in_level_view(cam, x_axis_xy, z_axis_xy, xn, hd, t_max)
             if len(keep):
-                c, s = self.cos[keep], self.sin[keep]
-                lox = -(c * rx[keep] + s * ry[keep])
-                loy = s * rx[keep] - c * ry[keep]
-                dlx = hd[:, :1] * c + hd[:, 1:2] * s  # (W, K)
-                dly = -hd[:, :1] * s + hd[:, 1:2] * c
-                tx0, tx1 = _slab(lox, dlx, self.hx[keep])
-                ty0, ty1 = _slab(loy, dly, self.hy[keep])
-                t_in, t_out = np.maximum(tx0, ty0), np.minimum(tx1, ty1)
-                pair = (t_out >= 0.0) & (t_in <= t_out) & (t_in <= t_max)
-                cols, kk = np.nonzero(pair)  # row-major: sorted by column
+                cols, kk, t_in, t_out = self._column_spans(cam, hd, keep, t_max)
                 if len(cols):
-                    # Height along a ray of row v: cam_z − yn[v]·t must lie in [z0, z1].
-                    inv = (-1.0 / _nonzero(yn)).astype(np.float32)  # (H,)
-                    za = (self.z0[keep] - cam[2]).astype(np.float32)[:, None] * inv
-                    zb = (self.z1[keep] - cam[2]).astype(np.float32)[:, None] * inv
-                    zlo, zhi = np.minimum(za, zb), np.maximum(za, zb)  # (K, H)
-                    tin = np.maximum(t_in[cols, kk], 0.0).astype(np.float32)[:, None]
-                    tout = np.minimum(t_out[cols, kk], t_max).astype(np.float32)[:, None]
-                    t_hit = np.maximum(zlo[kk], tin)
-                    t_hit[t_hit > np.minimum(zhi[kk], tout)] = np.inf
-                    starts = np.flatnonzero(np.r_[True, cols[1:] != cols[:-1]])
-                    depth[cols[starts]] = np.minimum.reduceat(t_hit, starts, axis=0)
+                    hit_cols, nearest = self._column_depths(
+                        cam, yn, keep, cols, kk, t_in, t_out, t_max
+                    )
+                    depth[hit_cols] = nearest
         if floor:
-            with np.errstate(divide="ignore"):
-                t_floor = np.where(yn > 0, cam[2] / np.where(yn > 0, yn, 1.0), np.inf)
-            t_floor = np.where(t_floor <= t_max, t_floor, np.inf).astype(np.float32)
+            t_floor = _floor_depth(cam[2], -yn, t_max).astype(np.float32)
             np.minimum(depth, t_floor[None, :], out=depth)
         return depth.T
+
+    def _in_level_view(
+        self,
+        cam: np.ndarray,
+        x_axis_xy: np.ndarray,
+        z_axis_xy: np.ndarray,
+        xn: np.ndarray,
+        hd: np.ndarray,
+        t_max: float,
+    ) -> np.ndarray:
+        """Indices of the boxes a level camera can see: within reach of its longest ray
+        (hd: the columns' horizontal ray parts) and not entirely outside the horizontal
+        field of view."""
+        rx, ry = self.cx - cam[0], self.cy - cam[1]
+        dist = np.hypot(rx, ry)
+        ray_len = np.hypot(hd[:, 0], hd[:, 1])
+        fwd = rx * z_axis_xy[0] + ry * z_axis_xy[1]
+        side = rx * x_axis_xy[0] + ry * x_axis_xy[1]
+        # A box is outside the view when it is entirely behind the left edge plane or
+        # entirely behind the right edge plane (planes through the camera, vertical).
+        nl = np.array([1.0, -xn[0]]) / np.hypot(1.0, xn[0])  # (side, fwd) inward normals
+        nr = np.array([-1.0, xn[-1]]) / np.hypot(1.0, xn[-1])
+        inside_l = side * nl[0] + fwd * nl[1] >= -self.radius
+        inside_r = side * nr[0] + fwd * nr[1] >= -self.radius
+        return np.flatnonzero((dist - self.radius <= t_max * ray_len.max()) & inside_l & inside_r)
+
+    def _column_spans(
+        self, cam: np.ndarray, hd: np.ndarray, keep: np.ndarray, t_max: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The (column, box) pairs whose vertical ray plane crosses box keep[kk] in plan
+        view within [0, t_max]: (cols, kk, t_in, t_out), sorted by column, with the
+        z-depth interval of each crossing (the plan-view slab test, once per pair)."""
+        rx, ry = self.cx[keep] - cam[0], self.cy[keep] - cam[1]
+        c, s = self.cos[keep], self.sin[keep]
+        lox = -(c * rx + s * ry)
+        loy = s * rx - c * ry
+        dlx = hd[:, :1] * c + hd[:, 1:2] * s  # (W, K)
+        dly = -hd[:, :1] * s + hd[:, 1:2] * c
+        tx0, tx1 = _slab(lox, dlx, self.hx[keep])
+        ty0, ty1 = _slab(loy, dly, self.hy[keep])
+        t_in, t_out = np.maximum(tx0, ty0), np.minimum(tx1, ty1)
+        pair = (t_out >= 0.0) & (t_in <= t_out) & (t_in <= t_max)
+        cols, kk = np.nonzero(pair)  # row-major: sorted by column
+        return cols, kk, t_in[cols, kk], t_out[cols, kk]
+
+    def _column_depths(
+        self,
+        cam: np.ndarray,
+        yn: np.ndarray,
+        keep: np.ndarray,
+        cols: np.ndarray,
+        kk: np.ndarray,
+        t_in: np.ndarray,
+        t_out: np.ndarray,
+        t_max: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(columns, (C, H) float32 nearest hits) of the pairs from `_column_spans`: per
+        row, the plan-view interval intersected with the one in which the ray's height is
+        within the box's [z0, z1], the nearest over each column's boxes (inf if none)."""
+        # Height along a ray of row v: cam_z − yn[v]·t must lie in [z0, z1].
+        inv = (-1.0 / _nonzero(yn)).astype(np.float32)  # (H,)
+        za = (self.z0[keep] - cam[2]).astype(np.float32)[:, None] * inv
+        zb = (self.z1[keep] - cam[2]).astype(np.float32)[:, None] * inv
+        zlo, zhi = np.minimum(za, zb), np.maximum(za, zb)  # (K, H)
+        tin = np.maximum(t_in, 0.0).astype(np.float32)[:, None]
+        tout = np.minimum(t_out, t_max).astype(np.float32)[:, None]
+        t_hit = np.maximum(zlo[kk], tin)
+        t_hit[t_hit > np.minimum(zhi[kk], tout)] = np.inf
+        starts = np.flatnonzero(np.r_[True, cols[1:] != cols[:-1]])
+        return cols[starts], np.minimum.reduceat(t_hit, starts, axis=0)
