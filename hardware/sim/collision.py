@@ -59,10 +59,26 @@ def _check_polygon(p: np.ndarray, name: str) -> np.ndarray:
 
 
 def edge_normals(p: np.ndarray) -> np.ndarray:
-    """Outward unit normals (K×2) of the edges p[i] → p[i+1] of a CCW polygon."""
-    e = np.roll(p, -1, axis=0) - p
-    n = np.column_stack([e[:, 1], -e[:, 0]])
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
+    """Outward unit normals (K×2) of the edges p[i] → p[i+1] of a CCW polygon (K×2), or
+    of each polygon of a stack (..., K, 2) of them."""
+    p = np.asarray(p, dtype=float)
+    e = p[..., [*range(1, p.shape[-2]), 0], :] - p
+    n = np.stack([e[..., 1], -e[..., 0]], axis=-1)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def _separated(plo: np.ndarray, phi: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(P, M) whether the axis-aligned box [plo, phi] of each part (P, 2) is apart from
+    (or touches) the box [lo, hi] of each polygon (M, 2)."""
+    return ((lo[None] >= phi[:, None]) | (hi[None] <= plo[:, None])).any(axis=2)
+
+
+def _axis_pushes(axes: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pair q and axis, how far polygon a[q] must move along +axes[q] (first) or
+    along −axes[q] (second) to clear b[q]; both positive on every axis: they overlap."""
+    pa = np.einsum("qad,qkd->qak", axes, a)
+    pb = np.einsum("qad,qkd->qak", axes, b)
+    return pb.max(axis=2) - pa.min(axis=2), pa.max(axis=2) - pb.min(axis=2)
 
 
 def _sat(a: np.ndarray, b: np.ndarray, axes: np.ndarray) -> tuple[float, np.ndarray] | None:
@@ -193,7 +209,7 @@ class PolygonSet:
             )
         self.names = tuple(names)
         self.polygons = polys
-        self.normals = np.array([edge_normals(p) for p in polys]).reshape(polys.shape)
+        self.normals = edge_normals(polys)
         self.centres = polys.mean(axis=1)
         self.radii = np.linalg.norm(polys - self.centres[:, None, :], axis=2).max(
             axis=1, initial=0.0
@@ -232,18 +248,11 @@ class PolygonSet:
             return best, ("",) * n
         plo, phi = parts.min(axis=1), parts.max(axis=1)
         m = max_dist if np.isfinite(max_dist) else 1e300
-        ip, im = np.nonzero(
-            ~((self.lo[None] - m >= phi[:, None]) | (self.hi[None] + m <= plo[:, None])).any(axis=2)
-        )
+        ip, im = np.nonzero(~_separated(plo, phi, self.lo - m, self.hi + m))
         if len(ip):
             a, b = parts[ip], self.polygons[im]
-            e = a[:, [*range(1, a.shape[1]), 0]] - a
-            na = np.stack([e[..., 1], -e[..., 0]], axis=-1)
-            na /= np.linalg.norm(na, axis=-1, keepdims=True)
-            axes = np.concatenate([na, self.normals[im]], axis=1)
-            pa = np.einsum("qad,qkd->qak", axes, a)
-            pb = np.einsum("qad,qkd->qak", axes, b)
-            push = np.minimum(pb.max(axis=2) - pa.min(axis=2), pa.max(axis=2) - pb.min(axis=2))
+            axes = np.concatenate([edge_normals(a), self.normals[im]], axis=1)
+            push = np.minimum(*_axis_pushes(axes, a, b))
             dist = np.minimum(_vertex_edge_distance(a, b), _vertex_edge_distance(b, a))
             dist = np.where((push > 0).all(axis=1), -push.min(axis=1), dist)
             order = np.lexsort((dist, ip))  # by part, nearest first
@@ -270,7 +279,22 @@ class PolygonSet:
             raise ValueError(
                 f"parts must be convex polygons with the same vertex count, got {pp.shape}"
             )
-        # Axis-aligned bounding boxes: first all parts together, then each part.
+        ip, im = self._box_pairs(pp)
+        if len(ip) == 0:
+            return []
+        a, b = pp[ip], self.polygons[im]  # (Q, K, 2), (Q, L, 2)
+        axes = np.concatenate([edge_normals(pp)[ip], self.normals[im]], axis=1)  # (Q, A, 2)
+        push_pos, push_neg = _axis_pushes(axes, a, b)
+        best = self._deepest(ip, im, axes, push_pos, push_neg)
+        return [
+            Contact(names[i], name, depth, normal, contact_point(pp[i], self.polygons[m]))
+            for (i, name), (depth, normal, m) in best.items()
+        ]
+
+    def _box_pairs(self, pp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(part indices, polygon indices) of the pairs whose axis-aligned bounding boxes
+        overlap, for parts pp (P, K, 2): first all parts together against the polygons
+        (a cached candidate list), then each part against the candidates."""
         plo, phi = pp.min(axis=1), pp.max(axis=1)  # (P, 2)
         x0, y0 = (float(v) for v in plo.min(axis=0))
         x1, y1 = (float(v) for v in phi.max(axis=0))
@@ -287,35 +311,27 @@ class PolygonSet:
             self._cache = c = (*c, cand)
         cand = c[4]
         if len(cand) == 0:
-            return []
-        blo, bhi = self.lo, self.hi
-        clo, chi = blo[cand], bhi[cand]
-        sep = (clo[None, :, :] >= phi[:, None, :]) | (chi[None, :, :] <= plo[:, None, :])
-        ip, ic = np.nonzero(~sep.any(axis=2))
-        if len(ip) == 0:
-            return []
-        im = cand[ic]
-        e = pp[:, [*range(1, pp.shape[1]), 0]] - pp
-        pn = np.stack([e[..., 1], -e[..., 0]], axis=-1)
-        pn /= np.linalg.norm(pn, axis=-1, keepdims=True)
-        a, b = pp[ip], self.polygons[im]  # (Q, K, 2), (Q, L, 2)
-        axes = np.concatenate([pn[ip], self.normals[im]], axis=1)  # (Q, A, 2)
-        pa = np.einsum("qad,qkd->qak", axes, a)
-        pb = np.einsum("qad,qkd->qak", axes, b)
-        push_pos = pb.max(axis=2) - pa.min(axis=2)  # move a along +axis
-        push_neg = pa.max(axis=2) - pb.min(axis=2)  # move a along -axis
+            return cand, cand
+        ip, ic = np.nonzero(~_separated(plo, phi, self.lo[cand], self.hi[cand]))
+        return ip, cand[ic]
+
+    def _deepest(
+        self,
+        ip: np.ndarray,
+        im: np.ndarray,
+        axes: np.ndarray,
+        push_pos: np.ndarray,
+        push_neg: np.ndarray,
+    ) -> dict[tuple[int, str], tuple[float, np.ndarray, int]]:
+        """Per (part index, polygon name), of the pairs (ip, im) that overlap on every
+        axis, the deepest: (depth, the unit normal pushing the part out, polygon index)."""
         push = np.minimum(push_pos, push_neg)
-        hit = np.flatnonzero((push > 0.0).all(axis=1))
         best: dict[tuple[int, str], tuple[float, np.ndarray, int]] = {}
-        for q in hit:
+        for q in np.flatnonzero((push > 0.0).all(axis=1)):
             j = int(np.argmin(push[q]))
             depth = float(push[q, j])
             normal = axes[q, j] if push_pos[q, j] <= push_neg[q, j] else -axes[q, j]
             key = (int(ip[q]), self.names[im[q]])
             if key not in best or depth > best[key][0]:
                 best[key] = (depth, normal.copy(), int(im[q]))
-        out = []
-        for (i, name), (depth, normal, m) in best.items():
-            point = contact_point(pp[i], self.polygons[m])
-            out.append(Contact(names[i], name, depth, normal, point))
-        return out
+        return best
