@@ -30,7 +30,7 @@ class Choice(enum.StrEnum):
             return cls(value)
         except ValueError:
             valid = ", ".join(m.value for m in cls)
-            raise ConfigError(f"{name} must be one of {valid}, got {value!r}") from None
+            raise ConfigError(f"{name} must be one of {valid}; got {value!r}") from None
 
     @classmethod
     def values(cls) -> tuple[str, ...]:

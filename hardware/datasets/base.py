@@ -145,11 +145,6 @@ def coerce_option(options: Any, name: str, convert: Callable[..., Any], **kwargs
     object.__setattr__(options, name, convert(name, getattr(options, name), **kwargs))
 
 
-def check_choice(name: str, value: str, valid: tuple[str, ...]) -> None:
-    if value not in valid:
-        raise ValueError(f"{name} must be one of {', '.join(valid)}; got {value!r}")
-
-
 def as_int(name: str, value: Any) -> int:
     """An int option given as int or int-like string (e.g. from a command line)."""
     if isinstance(value, bool):

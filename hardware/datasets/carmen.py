@@ -135,11 +135,11 @@ from typing import Any
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
+from hardware.choices import Choice, coerce
 from hardware.datasets.base import (
     Dataset,
     DatasetError,
     as_float,
-    check_choice,
     coerce_option,
     config_metadata,
     span_and_counts,
@@ -151,8 +151,22 @@ from hardware.geometry import arc_end1, between1, compose1, wrap1
 from hardware.messages import LaserScan, VelocityOdometry
 from hardware.registry import Spec
 
-ODOMETRY_MODES = ("smooth", "exact")
-TIMESTAMP_MODES = ("auto", "log", "synthetic")
+
+class OdometryMode(Choice):
+    """The odometry imported (module docstring): smoothed between scans, or exact."""
+
+    SMOOTH = "smooth"
+    EXACT = "exact"
+
+
+class TimestampMode(Choice):
+    """Which timestamps (module docstring): auto, the logged ones, or synthetic."""
+
+    AUTO = "auto"
+    LOG = "log"
+    SYNTHETIC = "synthetic"
+
+
 MAX_TIE_GAP_S = 1e-3
 SYNTHETIC_THRESHOLD = 0.2  # share of consecutive scans with equal timestamps
 SWING_RAD = 0.1
@@ -173,14 +187,13 @@ class CarmenOptions:
 
     relations: str | Path | None = None
     time_offset: float | None = None
-    odometry: str = "smooth"
+    odometry: OdometryMode = OdometryMode.SMOOTH
     range_max: float | None = None
-    timestamps: str = "auto"
+    timestamps: TimestampMode = TimestampMode.AUTO
     scan_period: float = 1.0
 
     def __post_init__(self) -> None:
-        check_choice("odometry", self.odometry, ODOMETRY_MODES)
-        check_choice("timestamps", self.timestamps, TIMESTAMP_MODES)
+        coerce(self, odometry=OdometryMode, timestamps=TimestampMode)
         coerce_option(self, "time_offset", as_float, allow_none=True)
         coerce_option(self, "range_max", as_float, allow_none=True)
         period = as_float("scan_period", self.scan_period)

@@ -88,11 +88,11 @@ from typing import Any
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
+from hardware.choices import Choice, coerce
 from hardware.datasets.base import (
     Dataset,
     DatasetError,
     as_int,
-    check_choice,
     coerce_option,
     config_metadata,
     interpolate_pose,
@@ -110,12 +110,29 @@ from hardware.registry import Spec
 
 ROBOTS = (1, 2, 3, 4, 5)
 LANDMARK_SUBJECTS = tuple(range(6, 21))
-GROUNDTRUTH_CHOICES = ("auto", "exact", "approximate", "none")
+
+
+class GroundTruthChoice(Choice):
+    """Which ground truth to attach (module docstring): auto, the exact or the
+    approximate files, or none."""
+
+    AUTO = "auto"
+    EXACT = "exact"
+    APPROXIMATE = "approximate"
+    NONE = "none"
+
+
 APPROX_DIR = "groundtruth_approx"
 
 CREATE_TRACK_M = 0.258
 CREATE_DIAMETER_M = 0.34
-CALIBRATIONS = ("dataset1", "none")
+
+
+class CalibrationChoice(Choice):
+    """The barcode camera's calibration: dataset 1's fit, or none (raw measurements)."""
+
+    DATASET1 = "dataset1"
+    NONE = "none"
 
 
 @dataclass(frozen=True)
@@ -160,13 +177,12 @@ class MrclamOptions:
     "none" (the files' values)."""
 
     robot: int = 1
-    groundtruth: str = "auto"
-    calibration: str = "dataset1"
+    groundtruth: GroundTruthChoice = GroundTruthChoice.AUTO
+    calibration: CalibrationChoice = CalibrationChoice.DATASET1
 
     def __post_init__(self) -> None:
         coerce_option(self, "robot", as_int)
-        check_choice("groundtruth", self.groundtruth, GROUNDTRUTH_CHOICES)
-        check_choice("calibration", self.calibration, CALIBRATIONS)
+        coerce(self, groundtruth=GroundTruthChoice, calibration=CalibrationChoice)
 
 
 @dataclass

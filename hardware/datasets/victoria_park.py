@@ -52,11 +52,11 @@ from typing import Any
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
+from hardware.choices import Choice, coerce
 from hardware.datasets.base import (
     Dataset,
     DatasetError,
     as_float,
-    check_choice,
     coerce_option,
     config_metadata,
     range_bearing_stream,
@@ -77,7 +77,13 @@ LASER_AHEAD_OF_FRONT_AXLE_M = 0.95  # a
 LASER_LEFT_M = 0.5  # b
 LASER_X_M = WHEELBASE_M + LASER_AHEAD_OF_FRONT_AXLE_M  # 3.78 m ahead of the rear axle
 INITIAL_HEADING_DEG = 35.5
-ORIGINS = ("rear-axle", "laser")
+
+
+class MeasurementOrigin(Choice):
+    """Where detections are measured from (module docstring): the rear axle or the laser."""
+
+    REAR_AXLE = "rear-axle"
+    LASER = "laser"
 
 
 @dataclass(frozen=True)
@@ -85,11 +91,11 @@ class VictoriaParkOptions:
     """measurements_from: "rear-axle" (default) or "laser"; initial_heading_deg: the
     heading of initial_pose (the first GPS fix)."""
 
-    measurements_from: str = "rear-axle"
+    measurements_from: MeasurementOrigin = MeasurementOrigin.REAR_AXLE
     initial_heading_deg: float = INITIAL_HEADING_DEG
 
     def __post_init__(self) -> None:
-        check_choice("measurements_from", self.measurements_from, ORIGINS)
+        coerce(self, measurements_from=MeasurementOrigin)
         coerce_option(self, "initial_heading_deg", as_float)
 
 
