@@ -351,56 +351,17 @@ def calibrate_camera(
     `CameraCalibrationError`. fix_k3 keeps k3 = 0 (ROS camera_calibration's default: k3
     over-fits unless the board reaches the image corners).
     """
-    cols, rows = (int(board[0]), int(board[1]))
-    if cols < 2 or rows < 2:
-        raise CameraCalibrationError(f"board must be at least 2x2 inner corners, got {board}")
-    if not (math.isfinite(square_m) and square_m > 0):
-        raise CameraCalibrationError(f"square size must be > 0 m, got {square_m}")
-    if min_images < 1:
-        raise CameraCalibrationError(f"min_images must be >= 1, got {min_images}")
+    cols, rows = _check_board(board, square_m, min_images)
     images = list(images)
-    if names is None:
-        names = [
-            str(im) if not isinstance(im, np.ndarray) else f"image {i}"
-            for i, im in enumerate(images)
-        ]
-    elif len(names) != len(images):
-        raise CameraCalibrationError(f"{len(names)} names for {len(images)} images")
-    if not images:
-        raise CameraCalibrationError("no images given")
-
-    obj = np.zeros((rows * cols, 3), np.float32)
-    obj[:, :2] = np.mgrid[0:cols, 0:rows].T.reshape(-1, 2) * square_m
-    size: tuple[int, int] | None = None
-    first = ""
-    used, rejected, img_points = [], [], []
-    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
-    for name, im in zip(names, images, strict=True):
-        grey = _grey(im, name)
-        hw = (grey.shape[1], grey.shape[0])
-        if size is None:
-            size, first = hw, name
-        elif hw != size:
-            raise CameraCalibrationError(
-                f"{name}: image is {hw[0]}x{hw[1]} but {first} is {size[0]}x{size[1]} "
-                "(all images must have the same size)"
-            )
-        found, corners = cv2.findChessboardCorners(grey, (cols, rows), flags=flags)
-        if not found:
-            rejected.append(name)
-            continue
-        spacing = _corner_spacing(corners.reshape(rows, cols, 2))
-        win = int(np.clip(spacing / 4.0, 2, 11))
-        corners = cv2.cornerSubPix(grey, corners, (win, win), (-1, -1), criteria)
-        used.append(name)
-        img_points.append(corners.astype(np.float32))
+    names = _image_names(images, names)
+    size, used, rejected, img_points = _board_corners(images, names, (cols, rows))
     if len(used) < min_images:
         raise CameraCalibrationError(
             f"the board ({cols}x{rows} inner corners) was found in {len(used)} of "
             f"{len(images)} images; at least {min_images} are needed"
         )
-    assert size is not None
+    obj = np.zeros((rows * cols, 3), np.float32)
+    obj[:, :2] = np.mgrid[0:cols, 0:rows].T.reshape(-1, 2) * square_m
     cal_flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
     rms, k, d, _, _, _, _, per_view = cv2.calibrateCameraExtended(
         [obj] * len(used), img_points, size, None, None, flags=cal_flags
@@ -417,6 +378,81 @@ def calibrate_camera(
         tuple(rejected),
         tuple(float(e) for e in np.asarray(per_view).ravel()),
     )
+
+
+def _check_board(board: tuple[int, int], square_m: float, min_images: int) -> tuple[int, int]:
+    """The board's inner corners (cols, rows) as integers, after checking the board, the
+    square size and min_images."""
+    cols, rows = (int(board[0]), int(board[1]))
+    if cols < 2 or rows < 2:
+        raise CameraCalibrationError(f"board must be at least 2x2 inner corners, got {board}")
+    if not (math.isfinite(square_m) and square_m > 0):
+        raise CameraCalibrationError(f"square size must be > 0 m, got {square_m}")
+    if min_images < 1:
+        raise CameraCalibrationError(f"min_images must be >= 1, got {min_images}")
+    return cols, rows
+
+
+def _image_names(
+    images: list[str | os.PathLike[str] | np.ndarray], names: Sequence[str] | None
+) -> Sequence[str]:
+    """The images' names: `names` (one per image) or the paths, "image N" for arrays;
+    raises when the counts differ or there are no images."""
+    if names is None:
+        names = [
+            str(im) if not isinstance(im, np.ndarray) else f"image {i}"
+            for i, im in enumerate(images)
+        ]
+    elif len(names) != len(images):
+        raise CameraCalibrationError(f"{len(names)} names for {len(images)} images")
+    if not images:
+        raise CameraCalibrationError("no images given")
+    return names
+
+
+def _board_corners(
+    images: list[str | os.PathLike[str] | np.ndarray],
+    names: Sequence[str],
+    board: tuple[int, int],
+) -> tuple[tuple[int, int], list[str], list[str], list[np.ndarray]]:
+    """(image size, names of the images the board was found in, of those it was not
+    found in, the found images' refined corners); raises when the sizes differ."""
+    size: tuple[int, int] | None = None
+    first = ""
+    used, rejected, img_points = [], [], []
+    for name, im in zip(names, images, strict=True):
+        grey = _grey(im, name)
+        hw = (grey.shape[1], grey.shape[0])
+        if size is None:
+            size, first = hw, name
+        elif hw != size:
+            raise CameraCalibrationError(
+                f"{name}: image is {hw[0]}x{hw[1]} but {first} is {size[0]}x{size[1]} "
+                "(all images must have the same size)"
+            )
+        corners = _find_corners(grey, board)
+        if corners is None:
+            rejected.append(name)
+            continue
+        used.append(name)
+        img_points.append(corners)
+    assert size is not None
+    return size, used, rejected, img_points
+
+
+def _find_corners(grey: np.ndarray, board: tuple[int, int]) -> np.ndarray | None:
+    """The board's inner corners in a grey image, refined to sub-pixel accuracy with a
+    window of about a quarter of their spacing (float32); None if it is not found."""
+    cols, rows = board
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    found, corners = cv2.findChessboardCorners(grey, (cols, rows), flags=flags)
+    if not found:
+        return None
+    spacing = _corner_spacing(corners.reshape(rows, cols, 2))
+    win = int(np.clip(spacing / 4.0, 2, 11))
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-4)
+    corners = cv2.cornerSubPix(grey, corners, (win, win), (-1, -1), criteria)
+    return corners.astype(np.float32)
 
 
 # -- helpers ----------------------------------------------------------------------------
