@@ -256,6 +256,24 @@ def _range(
     return float(lo), float(hi)
 
 
+def _frame_info(
+    decimation: int,
+    range_m: tuple[float, float],
+    stamp: str,
+    intrinsics: CameraIntrinsics,
+    intrinsics_from: str,
+) -> dict[str, Any]:
+    """The part of a depth camera's metadata that says how its frames are made."""
+    return {
+        "decimation": decimation,
+        "decimation_rule": "nearest valid depth per block",
+        "range_m": list(range_m),
+        "stamp": stamp,
+        "intrinsics": asdict(intrinsics),
+        "intrinsics_from": intrinsics_from,
+    }
+
+
 # --------------------------------------------------------------------------- time stamps
 
 
@@ -742,6 +760,31 @@ class _KinectStream:
         """The capture process (shared by the depth and video streams of a device)."""
         return self._hub.pid
 
+    def _attach(
+        self,
+        clock: HostClock,
+        stamp: str,
+        index: int,
+        folder: Path | None,
+        kind: str,
+        queue_frames: int,
+    ) -> None:
+        """Subscribe to the device's `kind` frames (its capture process started if need
+        be), with a stamper for the Kinect's clock."""
+        self._stamper = _Stamper(clock, stamp, KINECT_TICKS_PER_S, fk.TICK_WRAP)
+        self._hub, self._sub = _subscribe(index, folder, kind, queue_frames)
+        self._closed = False
+        self.frames_unstamped = 0
+
+    def _wait_first(self, timeout_s: float, kind: str) -> None:
+        """Wait for the stream's first frame; closes the stream if it does not come
+        (`DeviceError`) or the wait is interrupted."""
+        try:
+            self._sub.wait_ready(timeout_s, f"{kind} ({self._hub.describe()})")
+        except BaseException:
+            self.close()
+            raise
+
     def close(self) -> None:
         if not self._closed:
             self._closed = True
@@ -787,22 +830,14 @@ class KinectDepthSource(_KinectStream):
         self.intrinsics, self.decimation, origin = _frame_intrinsics(
             calibration, KINECT_WIDTH, KINECT_HEIGHT, decimation
         )
-        self._stamper = _Stamper(clock, stamp, KINECT_TICKS_PER_S, fk.TICK_WRAP)
         folder = None if fakenect is None else Path(fakenect)
-        self._hub, self._sub = _subscribe(int(index), folder, "depth", queue_frames)
-        self._closed = False
-        self.frames_unstamped = 0
+        self._attach(clock, stamp, int(index), folder, "depth", queue_frames)
         info: dict[str, Any] = {
             "device": "fakenect" if folder is not None else "kinect",
             "driver": "libfreenect sync API, 11-bit raw depth",
             "raw_to_mm": KINECT_RAW_TO_MM,
             "native_size": [KINECT_WIDTH, KINECT_HEIGHT],
-            "decimation": self.decimation,
-            "decimation_rule": "nearest valid depth per block",
-            "range_m": list(self.range_m),
-            "stamp": stamp,
-            "intrinsics": asdict(self.intrinsics),
-            "intrinsics_from": origin,
+            **_frame_info(self.decimation, self.range_m, stamp, self.intrinsics, origin),
         }
         if folder is not None:
             info["path"] = str(folder.resolve())
@@ -810,11 +845,7 @@ class KinectDepthSource(_KinectStream):
         else:
             info["index"] = int(index)
         self._metadata = {"depth_camera": info}
-        try:
-            self._sub.wait_ready(open_timeout_s, f"depth ({self._hub.describe()})")
-        except BaseException:
-            self.close()
-            raise
+        self._wait_first(open_timeout_s, "depth")
 
     @property
     def calibration(self) -> WalkerCalibration:
@@ -857,16 +888,9 @@ class KinectVideoStream(_KinectStream):
         queue_frames: int = 4,
     ) -> None:
         device, folder = _parse_kinect_device(index)
-        self._stamper = _Stamper(clock, stamp, KINECT_TICKS_PER_S, fk.TICK_WRAP)
         self.stop = stop
-        self._hub, self._sub = _subscribe(device, folder, "video", queue_frames)
-        self._closed = False
-        self.frames_unstamped = 0
-        try:
-            self._sub.wait_ready(open_timeout_s, f"video ({self._hub.describe()})")
-        except BaseException:
-            self.close()
-            raise
+        self._attach(clock, stamp, device, folder, "video", queue_frames)
+        self._wait_first(open_timeout_s, "video")
 
     def __iter__(self) -> KinectVideoStream:
         return self
@@ -923,6 +947,46 @@ def _import_pyrealsense2() -> Any:
     return rs
 
 
+def _start_realsense(rs: Any, width: int, height: int, fps: int) -> tuple[Any, Any]:
+    """(pipeline, profile) of the first RealSense's z16 depth stream width×height at fps,
+    started; `DeviceError` when there is none or the stream cannot start."""
+    context = rs.context()
+    devices = context.query_devices()
+    if len(devices) == 0:
+        raise DeviceError("no RealSense device found (pyrealsense2 sees none connected)")
+    pipeline = rs.pipeline(context)
+    config = rs.config()
+    config.enable_stream(rs.stream.depth, int(width), int(height), rs.format.z16, int(fps))
+    try:
+        return pipeline, pipeline.start(config)
+    except RuntimeError as exc:
+        raise DeviceError(
+            f"cannot start the RealSense depth stream {width}x{height}@{fps}: {exc}"
+        ) from None
+
+
+def _stream_intrinsics(rs: Any, profile: Any) -> CameraIntrinsics:
+    """The pinhole intrinsics of a started pipeline's depth stream."""
+    intr = profile.get_stream(rs.stream.depth).as_video_stream_profile().get_intrinsics()
+    return CameraIntrinsics(int(intr.width), int(intr.height), intr.fx, intr.fy, intr.ppx, intr.ppy)
+
+
+def _device_info(rs: Any, device: Any) -> dict[str, str]:
+    """A RealSense's name, serial number and firmware version ("" for what it cannot tell)."""
+
+    def info(key: Any) -> str:
+        try:
+            return str(device.get_info(key))
+        except RuntimeError:
+            return ""
+
+    return {
+        "name": info(rs.camera_info.name),
+        "serial": info(rs.camera_info.serial_number),
+        "firmware": info(rs.camera_info.firmware_version),
+    }
+
+
 class RealSenseDepthSource:
     """Depth frames of an Intel RealSense through pyrealsense2 (untested here: no device).
 
@@ -955,25 +1019,10 @@ class RealSenseDepthSource:
         self.range_m = _range(calibration, range_m)
         self._stamper = _Stamper(clock, stamp, 1000.0, None)
         self.frame_timeout_s = float(frame_timeout_s)
-        context = rs.context()
-        devices = context.query_devices()
-        if len(devices) == 0:
-            raise DeviceError("no RealSense device found (pyrealsense2 sees none connected)")
-        self._pipeline = rs.pipeline(context)
-        config = rs.config()
-        config.enable_stream(rs.stream.depth, int(width), int(height), rs.format.z16, int(fps))
-        try:
-            profile = self._pipeline.start(config)
-        except RuntimeError as exc:
-            raise DeviceError(
-                f"cannot start the RealSense depth stream {width}x{height}@{fps}: {exc}"
-            ) from None
+        self._pipeline, profile = _start_realsense(rs, width, height, fps)
         device = profile.get_device()
         self.depth_scale_m = float(device.first_depth_sensor().get_depth_scale())
-        intr = profile.get_stream(rs.stream.depth).as_video_stream_profile().get_intrinsics()
-        native = CameraIntrinsics(
-            int(intr.width), int(intr.height), intr.fx, intr.fy, intr.ppx, intr.ppy
-        )
+        native = _stream_intrinsics(rs, profile)
         k = default_decimation(native.width, native.height, calibration.depth_intrinsics)
         k = k if decimation is None else int(decimation)
         if k < 1 or native.width % k or native.height % k:
@@ -990,28 +1039,14 @@ class RealSenseDepthSource:
         self._running = True
         self._iterating = False
         self.frames_unstamped = 0
-
-        def info(key: Any) -> str:
-            try:
-                return str(device.get_info(key))
-            except RuntimeError:
-                return ""
-
         self._metadata = {
             "depth_camera": {
                 "device": "realsense",
-                "name": info(rs.camera_info.name),
-                "serial": info(rs.camera_info.serial_number),
-                "firmware": info(rs.camera_info.firmware_version),
+                **_device_info(rs, device),
                 "depth_scale_m": self.depth_scale_m,
                 "native_size": [native.width, native.height],
                 "fps": int(fps),
-                "decimation": self.decimation,
-                "decimation_rule": "nearest valid depth per block",
-                "range_m": list(self.range_m),
-                "stamp": stamp,
-                "intrinsics": asdict(self.intrinsics),
-                "intrinsics_from": "device stream profile",
+                **_frame_info(k, self.range_m, stamp, self.intrinsics, "device stream profile"),
             }
         }
 

@@ -577,3 +577,135 @@ def test_realsense_without_a_device_is_a_one_line_error(monkeypatch):
     with pytest.raises(DeviceError) as e:
         open_depth("realsense", WalkerCalibration(), HostClock())
     assert _one_line(e) == "no RealSense device found (pyrealsense2 sees none connected)"
+
+
+class _FakeRealSense:
+    """A stand-in for pyrealsense2 with one device connected (the calls
+    `RealSenseDepthSource` makes): a depth stream whose profile has `native` intrinsics,
+    a depth scale, and `frames` (z16 arrays) delivered one per wait, 33 ms apart."""
+
+    class stream:  # pyrealsense2's names
+        depth = "depth"
+
+    class format:
+        z16 = "z16"
+
+    class camera_info:
+        name, serial_number, firmware_version = "name", "serial", "firmware"
+
+    def __init__(self, native, scale_m=0.001, frames=(), start_error=None):
+        self.native, self.scale_m, self.frames = native, scale_m, list(frames)
+        self.start_error = start_error
+        self.enabled: list[tuple] = []
+        self.stops = 0
+        self.delivered = 0
+        rs = self
+
+        class Config:
+            def enable_stream(self, *args):
+                rs.enabled.append(args)
+
+        class Pipeline:
+            def __init__(self, context):
+                pass
+
+            def start(self, config):
+                if rs.start_error:
+                    raise RuntimeError(rs.start_error)
+                return rs._profile()
+
+            def stop(self):
+                rs.stops += 1
+
+            def try_wait_for_frames(self, timeout_ms):
+                if not rs.frames:
+                    return False, None
+                t_ms = 1000.0 + 33.0 * rs.delivered
+                rs.delivered += 1
+                data = rs.frames.pop(0)
+                depth = types.SimpleNamespace(get_timestamp=lambda: t_ms, get_data=lambda: data)
+                return True, types.SimpleNamespace(get_depth_frame=lambda: depth)
+
+        self.config, self.pipeline = Config, Pipeline
+        self.context = lambda: types.SimpleNamespace(query_devices=lambda: ["D435"])
+
+    def _profile(self):
+        n = self.native
+        intr = types.SimpleNamespace(
+            width=n.width, height=n.height, fx=n.fx, fy=n.fy, ppx=n.cx, ppy=n.cy
+        )
+        video = types.SimpleNamespace(get_intrinsics=lambda: intr)
+        stream = types.SimpleNamespace(as_video_stream_profile=lambda: video)
+
+        def info(key):
+            if key == "firmware":
+                raise RuntimeError("not supported")
+            return {"name": "Intel RealSense D435", "serial": "0123"}[key]
+
+        sensor = types.SimpleNamespace(get_depth_scale=lambda: self.scale_m)
+        device = types.SimpleNamespace(first_depth_sensor=lambda: sensor, get_info=info)
+        return types.SimpleNamespace(get_device=lambda: device, get_stream=lambda s: stream)
+
+
+def _realsense(monkeypatch, **fake) -> _FakeRealSense:
+    rs = _FakeRealSense(**fake)
+    monkeypatch.setitem(sys.modules, "pyrealsense2", rs)
+    return rs
+
+
+def test_a_realsense_opens_with_its_stream_profile_decimated_to_the_calibration(monkeypatch):
+    native = CameraIntrinsics(640, 480, 384.0, 383.5, 320.25, 238.75)
+    z = np.full((480, 640), 2000, np.uint16)
+    z[0, :4] = (0, 700, 3600, 1500)  # no reading, nearer and farther than the range, valid
+    rs = _realsense(monkeypatch, native=native, frames=[z, z])
+    src = open_depth("realsense", WalkerCalibration(), HostClock(), stamp="arrival")
+    assert rs.enabled == [("depth", 640, 480, "z16", 30)]
+    assert src.decimation == 4
+    assert src.intrinsics == CameraIntrinsics(160, 120, 96.0, 95.875, 79.6875, 59.3125)
+    assert src.metadata == {
+        "depth_camera": {
+            "device": "realsense",
+            "name": "Intel RealSense D435",
+            "serial": "0123",
+            "firmware": "",
+            "depth_scale_m": 0.001,
+            "native_size": [640, 480],
+            "fps": 30,
+            "decimation": 4,
+            "decimation_rule": "nearest valid depth per block",
+            "range_m": [0.8, 3.5],
+            "stamp": "arrival",
+            "intrinsics": {
+                "width": 160,
+                "height": 120,
+                "fx": 96.0,
+                "fy": 95.875,
+                "cx": 79.6875,
+                "cy": 59.3125,
+            },
+            "intrinsics_from": "device stream profile",
+        }
+    }
+    frames = list(itertools.islice(src.messages(), 2))
+    assert rs.stops == 1  # the generator's end stopped the pipeline
+    assert frames[0].t < frames[1].t
+    assert frames[0].depth_mm.shape == (120, 160)
+    assert frames[0].depth_mm[0, 0] == 1500  # the block's nearest valid reading
+    assert np.all(frames[0].depth_mm[1:] == 2000) and np.all(frames[0].depth_mm[0, 1:] == 2000)
+    src.close()
+    assert rs.stops == 1
+
+
+def test_realsense_errors_opening_are_one_line_and_stop_the_pipeline(monkeypatch):
+    native = CameraIntrinsics(640, 480, 384.0, 383.5, 320.0, 240.0)
+    rs = _realsense(monkeypatch, native=native)
+    with pytest.raises(DeviceError) as e:
+        open_depth("realsense", WalkerCalibration(), HostClock(), decimation=3)
+    assert _one_line(e) == "decimation 3 does not divide the depth frame 640x480"
+    assert rs.stops == 1
+    _realsense(monkeypatch, native=native, start_error="Couldn't resolve requests")
+    with pytest.raises(DeviceError) as e:
+        open_depth("realsense", WalkerCalibration(), HostClock(), width=1280, height=720, fps=6)
+    assert _one_line(e) == (
+        "cannot start the RealSense depth stream 1280x720@6: Couldn't resolve requests"
+    )
