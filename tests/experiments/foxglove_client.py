@@ -81,8 +81,10 @@ class Client:
             reader = asyncio.ensure_future(self._read(ws))
             stopper = asyncio.ensure_future(self._stop.wait())
             await asyncio.wait({reader, stopper}, return_when=asyncio.FIRST_COMPLETED)
-            reader.cancel()
-            if reader.done() and not reader.cancelled() and reader.exception():
+            for task in (reader, stopper):  # the one still pending (the server closed, or
+                task.cancel()  # close() was called) ends here, not at garbage collection
+            await asyncio.gather(reader, stopper, return_exceptions=True)
+            if not reader.cancelled() and reader.exception():
                 raise reader.exception()
 
     async def _read(self, ws) -> None:
