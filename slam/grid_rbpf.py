@@ -15,7 +15,7 @@ of odometry), for each particle:
    (slam.grid_kernels: GMapping's endpoint model and optimizer);
 2. when at least `min_points` of the frame's points found an occupied cell there, the
    improved proposal: likelihood × odometry prior on a 3×3×3 lattice around the match
-   (`match_fit_step_m`, `match_fit_step_rad`), a Gaussian fitted to it
+   (`match.fit_step_m`, `match.fit_step_rad`), a Gaussian fitted to it
    (slam.scan_proposal.gaussian_fit), the new pose drawn from it, the weight multiplied by
    the product's mass η; otherwise the pose is drawn from the odometry prior and weighted
    by the frame's likelihood there;
@@ -55,8 +55,41 @@ from slam.measurement import BEARING_SIGMA_RAD, RANGE_SIGMA_FRAC, RANGE_SIGMA_M
 from slam.motion import MotionNoise
 from slam.particle_filter import ParticleFilter, ParticleFilterConfig
 from slam.particle_paths import ParticlePaths
-from slam.scan_proposal import gaussian_fit, lattice, sample_gaussians
+from slam.scan_proposal import ProposalLattice, gaussian_fit, lattice, sample_gaussians
 from slam.trajectory import Trajectory
+
+
+@dataclass(frozen=True)
+class GridMatch:
+    """The scan match of each particle against its own map (slam.grid_kernels): a point
+    scores against the hit centroid of the nearest occupied cell within ± kernel_cells,
+    a Gaussian of σ = sigma_m, times beam_weight; step_m / step_rad: the hill climb's
+    first steps, halved `refinements` times; turn_starts_sigma: when this many of the
+    odometry's heading σ since the last frame reach two step_rad (a sharp turn between
+    scans), the match also starts from the odometry pose turned by ± that much and keeps
+    the best of the three climbs (on the Intel log a 10° odometry error in one turn is
+    beyond the climb's reach: 2 of 3 seeds broke there without it); 0 disables;
+    fit_step_m / fit_step_rad: the lattice the proposal's Gaussian is fitted on."""
+
+    kernel_cells: int = 1
+    sigma_m: float = 0.03
+    beam_weight: float = 1.0
+    step_m: float = 0.05
+    step_rad: float = 0.05
+    refinements: int = 5
+    turn_starts_sigma: float = 1.5
+    fit_step_m: float = 0.02
+    fit_step_rad: float = 0.01
+
+    def __post_init__(self) -> None:
+        if self.kernel_cells < 0 or self.refinements < 0:
+            raise ValueError("kernel_cells and refinements must be >= 0")
+        if self.turn_starts_sigma < 0:
+            raise ValueError(f"turn_starts_sigma must be >= 0, got {self.turn_starts_sigma}")
+        if self.sigma_m <= 0 or self.beam_weight <= 0:
+            raise ValueError("sigma_m and beam_weight must be > 0")
+        if min(self.step_m, self.step_rad, self.fit_step_m, self.fit_step_rad) <= 0:
+            raise ValueError("the match's steps must be > 0")
 
 
 @dataclass(frozen=True)
@@ -66,24 +99,16 @@ class GridRbpfConfig(KnownMapConfig):
     initial_pose, initial_sigma, noise, landmark_map, use_landmarks, the landmark noise
     (range_sigma_m, range_sigma_frac, bearing_sigma_rad, outlier_prob, outlier_range_m),
     max_beams, max_range_m, min_points, scan_every_m / scan_every_rad, seed,
-    resample_threshold and the proposal's lattice (proposal_*): as in
-    slam.particle_filter.ParticleFilterConfig, whose machinery this filter reuses.
-    n_particles: particles, each with its own grid.
-    The scan match (slam.grid_kernels): a point scores against the hit centroid of the
-    nearest occupied cell within ± match_kernel_cells, a Gaussian of σ = match_sigma_m
-    (with z_hit, z_rand as the shared-map filter's), times match_beam_weight;
-    match_step_m / match_step_rad: first steps, halved match_refinements times;
-    match_turn_starts_sigma: when this many of the odometry's heading σ since the last
-    frame reach two match_step_rad (a sharp turn between scans), the match also starts
-    from the odometry pose turned by ± that much and keeps the best of the three climbs
-    (on the Intel log a 10° odometry error in one turn is beyond the climb's reach: 2 of
-    3 seeds broke there without it); 0 disables; match_fit_step_m / match_fit_step_rad:
-    the lattice the proposal's Gaussian is fitted on. weight_gain: a frame's log-weights
-    are divided by it (GMapping's "ogain"): the proposal follows the sharp likelihood
-    while the weights, which decide which particles (and maps) survive, are smoothed, so
-    that resampling does not deplete the particles at every frame. The defaults were
-    chosen on the Intel lab log (BENCHMARKS.md: 60 particles, σ 0.03 m, gain 20; 30
-    particles fail a late loop on some seeds).
+    resample_threshold: as in slam.particle_filter.ParticleFilterConfig, whose machinery
+    this filter reuses. n_particles: particles, each with its own grid. sigma_floor
+    (x, y, θ): added to the odometry prior's σ of each particle (in quadrature) before
+    its match. match: the scan match per particle (GridMatch), with z_hit, z_rand as the
+    shared-map filter's. weight_gain: a frame's log-weights are divided by it (GMapping's
+    "ogain"): the proposal follows the sharp likelihood while the weights, which decide
+    which particles (and maps) survive, are smoothed, so that resampling does not
+    deplete the particles at every frame. The defaults were chosen on the Intel lab log
+    (BENCHMARKS.md: 60 particles, σ 0.03 m, gain 20; 30 particles fail a late loop on
+    some seeds).
     """
 
     initial_sigma: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -104,34 +129,15 @@ class GridRbpfConfig(KnownMapConfig):
     resample_threshold: float = 0.5
     outlier_prob: float = 0.01
     outlier_range_m: float = 10.0
-    proposal_window_m: tuple[float, float] = (0.15, 0.5)
-    proposal_window_rad: tuple[float, float] = (0.05, 0.3)
-    proposal_step_m: float = 0.05
-    proposal_step_rad: float = 0.02
-    proposal_fine_steps: int = 3
-    proposal_sigma_floor: tuple[float, float, float] = (0.01, 0.01, 0.005)
-    match_kernel_cells: int = 1
-    match_sigma_m: float = 0.03
-    match_beam_weight: float = 1.0
-    match_step_m: float = 0.05
-    match_step_rad: float = 0.05
-    match_refinements: int = 5
-    match_turn_starts_sigma: float = 1.5
-    match_fit_step_m: float = 0.02
-    match_fit_step_rad: float = 0.01
+    sigma_floor: tuple[float, float, float] = (0.01, 0.01, 0.005)
+    match: GridMatch = field(default_factory=lambda: GridMatch())
     weight_gain: float = 20.0
 
     def __post_init__(self) -> None:
-        if self.n_particles < 1 or self.match_kernel_cells < 0 or self.match_refinements < 0:
-            raise ValueError("need n_particles >= 1, match_kernel_cells, refinements >= 0")
-        if self.match_turn_starts_sigma < 0:
-            raise ValueError(
-                f"match_turn_starts_sigma must be >= 0, got {self.match_turn_starts_sigma}"
-            )
+        if self.n_particles < 1:
+            raise ValueError(f"n_particles must be >= 1, got {self.n_particles}")
         if self.weight_gain < 1.0:
             raise ValueError(f"weight_gain must be >= 1, got {self.weight_gain}")
-        if self.match_sigma_m <= 0 or self.match_beam_weight <= 0:
-            raise ValueError("match_sigma_m and match_beam_weight must be > 0")
         self.machinery()  # the shared filter's checks of the fields it takes
 
     def machinery(self) -> ParticleFilterConfig:
@@ -139,7 +145,13 @@ class GridRbpfConfig(KnownMapConfig):
         (prediction, landmark weighting, resampling, the scan proposal's odometry)."""
         shared = {f.name for f in fields(ParticleFilterConfig)}
         kept = {f.name: getattr(self, f.name) for f in fields(self) if f.name in shared}
-        return ParticleFilterConfig(**kept, use_scans=True, proposal="scan", smoother="none")
+        return ParticleFilterConfig(
+            **kept,
+            use_scans=True,
+            proposal="scan",
+            smoother="none",
+            lattice=ProposalLattice(sigma_floor=self.sigma_floor),
+        )
 
 
 class GridRbpf(ParticleFilter):
@@ -212,12 +224,13 @@ class GridRbpf(ParticleFilter):
         """The frame's scan match per particle: scored with its points as projected (a
         laser scan's own end points), integrated compacted (as the mapper does)."""
         c = self.config
+        m = c.match
         if self._moved[0] < c.scan_every_m and self._moved[1] < c.scan_every_rad:
             return
         obs = projection.compact
         points = self._scoring_points(projection.raw)
         prior = self._prior_cov()
-        steps = np.array([c.match_fit_step_m, c.match_fit_step_m, c.match_fit_step_rad])
+        steps = np.array([m.fit_step_m, m.fit_step_m, m.fit_step_rad])
         log_volume = float(np.log(steps).sum()) - 1.5 * math.log(2.0 * math.pi)
         new = np.empty_like(self.particles)
         log_eta = np.zeros(len(self.particles))
@@ -228,11 +241,11 @@ class GridRbpf(ParticleFilter):
                 new[i] = sample_gaussians(self.particles[i : i + 1], prior[i : i + 1], self.rng)[0]
                 continue
             scored = True
-            kernel = (c.match_kernel_cells, c.match_sigma_m, c.z_hit, c.z_rand)
+            kernel = (m.kernel_cells, m.sigma_m, c.z_hit, c.z_rand)
             pose, matched = self._match(args, points, self.particles[i], prior[i], kernel)
             if matched >= c.min_points:
                 fit = lattice(pose, (1, 1, 1), steps)
-                ll = c.match_beam_weight * poses_log_likelihood(*args, points, fit, *kernel)
+                ll = m.beam_weight * poses_log_likelihood(*args, points, fit, *kernel)
                 mu, cov, eta = gaussian_fit(
                     fit, ll, self.particles[i : i + 1], prior[i : i + 1], steps
                 )
@@ -242,7 +255,7 @@ class GridRbpf(ParticleFilter):
             else:
                 new[i] = sample_gaussians(self.particles[i : i + 1], prior[i : i + 1], self.rng)[0]
                 ll, _ = frame_log_likelihood(*args, points, new[i], *kernel)
-                log_eta[i] = c.match_beam_weight * ll
+                log_eta[i] = m.beam_weight * ll
                 self.counts["unmatched"] += 1
         correction = new - self.particles
         correction[:, 2] = wrap_angle(correction[:, 2])
@@ -261,20 +274,20 @@ class GridRbpf(ParticleFilter):
     def _match(
         self, args: tuple, points: np.ndarray, start: np.ndarray, prior: np.ndarray, kernel
     ) -> tuple[np.ndarray, int]:
-        """Hill-climbed pose from `start`, and from `start` turned by ± match_turn_starts_sigma
+        """Hill-climbed pose from `start`, and from `start` turned by ± turn_starts_sigma
         heading σ of `prior` when that is at least two first angular steps: (pose, matched)."""
-        c = self.config
+        c = self.config.match
         sigma_theta = math.sqrt(max(float(prior[2, 2]), 0.0))
         turns = [0.0]
-        offset = c.match_turn_starts_sigma * sigma_theta
-        if offset >= 2.0 * c.match_step_rad:  # nearer starts the climb reaches by itself
+        offset = c.turn_starts_sigma * sigma_theta
+        if offset >= 2.0 * c.step_rad:  # nearer starts the climb reaches by itself
             turns += [offset, -offset]
         best = None
         for turn in turns:
             s = start.copy()
             s[2] += turn
             pose, score, matched = hill_climb(
-                *args, points, s, c.match_step_m, c.match_step_rad, c.match_refinements, *kernel
+                *args, points, s, c.step_m, c.step_rad, c.refinements, *kernel
             )
             if best is None or score > best[1]:
                 best = (pose, score, matched)

@@ -97,7 +97,13 @@ from slam.motion import (
 )
 from slam.particle_paths import ParticlePaths
 from slam.rts import rts_smooth
-from slam.scan_proposal import gaussian_fit, lattice, rotate_covariance, sample_gaussians
+from slam.scan_proposal import (
+    ProposalLattice,
+    gaussian_fit,
+    lattice,
+    rotate_covariance,
+    sample_gaussians,
+)
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 ODOMETRY_ONLY_NOTE = "no landmark observations and no map: odometry only"
@@ -168,12 +174,8 @@ class ParticleFilterConfig(KnownMapConfig):
         and all bearings; 0 = the plain Gaussian.
     smoother: "rts" | "ancestry" | "none": what `trajectory()` is (module docstring);
         path_snapshot_s: the ancestry's sampling interval.
-    proposal: "motion" or "scan" (module docstring). For "scan": the coarse search
-        covers the particles' prior (3σ of the accumulated odometry covariance, plus
-        their spread) clipped to proposal_window_m (min, max half-width in x and y) and
-        proposal_window_rad, in steps of proposal_step_m and proposal_step_rad; the fine
-        lattice around its best pose has proposal_fine_steps steps per coarse step either
-        side; proposal_sigma_floor (x, y, θ) is added to every prior's σ (in quadrature).
+    proposal: "motion" or "scan" (module docstring); for "scan", lattice: its search
+        lattices and prior floor (slam.scan_proposal.ProposalLattice).
     Frames are scored against the attached map, the one map that the pipeline builds at
     this filter's estimates (Monte Carlo localization); slam.grid_rbpf (`grid-rbpf`) is
     the Rao-Blackwellized filter with a map per particle.
@@ -207,19 +209,12 @@ class ParticleFilterConfig(KnownMapConfig):
     path_snapshot_s: float = 0.1
 
     proposal: Proposal = Proposal.MOTION
-    proposal_window_m: tuple[float, float] = (0.15, 0.5)
-    proposal_window_rad: tuple[float, float] = (0.05, 0.3)
-    proposal_step_m: float = 0.05
-    proposal_step_rad: float = 0.02
-    proposal_fine_steps: int = 3
-    proposal_sigma_floor: tuple[float, float, float] = (0.01, 0.01, 0.005)
+    lattice: ProposalLattice = field(default_factory=ProposalLattice)
 
     def __post_init__(self) -> None:
         coerce(self, smoother=PathSmoother, proposal=Proposal)
         if not 0.0 <= self.outlier_prob < 1.0 or self.outlier_range_m <= 0:
             raise ValueError("outlier_prob must be in [0, 1) and outlier_range_m > 0")
-        if min(self.proposal_step_m, self.proposal_step_rad) <= 0 or self.proposal_fine_steps < 1:
-            raise ValueError("proposal steps must be > 0 and proposal_fine_steps >= 1")
         if self.n_particles < 1:
             raise ValueError(f"n_particles must be >= 1, got {self.n_particles}")
         if len(self.initial_sigma) != 3 or min(self.initial_sigma) < 0:
@@ -450,7 +445,7 @@ class ParticleFilter(Localizer):
     def _prior_cov(self) -> np.ndarray:
         """(N, 3, 3) world-frame covariance of each particle's accumulated odometry, with
         the floor: the odometry frame is the pose the particle was last drawn at."""
-        floor = np.diag(np.square(self.pf.proposal_sigma_floor))
+        floor = np.diag(np.square(self.pf.lattice.sigma_floor))
         anchor_heading = self.particles[:, 2] - self._odo_delta[2]
         return rotate_covariance(np.array(self._odo_cov) + floor, anchor_heading)
 
@@ -458,7 +453,7 @@ class ParticleFilter(Localizer):
         """Proposal "scan": draw the odometry noise accumulated since the last draw."""
         if self.pf.proposal != "scan" or not any(self._odo_cov[i][i] for i in range(3)):
             return
-        cov = self._prior_cov() - np.diag(np.square(self.pf.proposal_sigma_floor))
+        cov = self._prior_cov() - np.diag(np.square(self.pf.lattice.sigma_floor))
         cov += 1e-18 * np.eye(3)  # positive definite for the Cholesky factor
         self.particles = sample_gaussians(self.particles, cov, self.rng)
         self._reset_odometry()
@@ -469,20 +464,20 @@ class ParticleFilter(Localizer):
 
     def _scan_proposal(self, points: np.ndarray, f: _Field, t: float) -> None:
         """Draw every particle from odometry prior × frame likelihood (slam.scan_proposal)."""
-        c = self.pf
+        c = self.pf.lattice
         prior = self._prior_cov()
         mean = self._mean()
         spread = np.sqrt(np.diagonal(prior, axis1=1, axis2=2).max(axis=0))
         d = self.particles - mean
         d[:, 2] = wrap_angle(d[:, 2])
         spread = 3.0 * spread + np.abs(d).max(axis=0)
-        steps = np.array([c.proposal_step_m, c.proposal_step_m, c.proposal_step_rad])
-        lo = np.array([c.proposal_window_m[0]] * 2 + [c.proposal_window_rad[0]])
-        hi = np.array([c.proposal_window_m[1]] * 2 + [c.proposal_window_rad[1]])
+        steps = np.array([c.step_m, c.step_m, c.step_rad])
+        lo = np.array([c.window_m[0]] * 2 + [c.window_rad[0]])
+        hi = np.array([c.window_m[1]] * 2 + [c.window_rad[1]])
         half = np.ceil(np.clip(spread, lo, hi) / steps).astype(int)
         coarse = lattice(mean, tuple(half), steps)
         best = coarse[int(np.argmax(self._score(coarse, points, f)))]
-        k = c.proposal_fine_steps
+        k = c.fine_steps
         fine = lattice(best, (k, k, k), steps / k)
         mu, cov, log_eta = gaussian_fit(
             fine, self._score(fine, points, f), self.particles, prior, steps / k

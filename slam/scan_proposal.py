@@ -19,10 +19,35 @@ lattice and every particle reuses it:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.special import logsumexp
 
 from hardware.geometry import wrap_angle
+
+
+@dataclass(frozen=True)
+class ProposalLattice:
+    """The lattices of the scan proposal (module docstring): the coarse search covers the
+    particles' prior (3σ of the accumulated odometry covariance, plus their spread)
+    clipped to window_m (min, max half-width in x and y) and window_rad, in steps of
+    step_m and step_rad; the fine lattice around its best pose has fine_steps steps per
+    coarse step either side; sigma_floor (x, y, θ) is added to every prior's σ (in
+    quadrature)."""
+
+    window_m: tuple[float, float] = (0.15, 0.5)
+    window_rad: tuple[float, float] = (0.05, 0.3)
+    step_m: float = 0.05
+    step_rad: float = 0.02
+    fine_steps: int = 3
+    sigma_floor: tuple[float, float, float] = (0.01, 0.01, 0.005)
+
+    def __post_init__(self) -> None:
+        if min(self.step_m, self.step_rad) <= 0 or self.fine_steps < 1:
+            raise ValueError("lattice steps must be > 0 and fine_steps >= 1")
+        if len(self.sigma_floor) != 3 or min(self.sigma_floor) < 0:
+            raise ValueError(f"sigma_floor must be three values >= 0, got {self.sigma_floor}")
 
 
 def lattice(centre: np.ndarray, half_steps: tuple[int, int, int], steps: np.ndarray) -> np.ndarray:

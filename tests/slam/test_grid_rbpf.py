@@ -21,7 +21,7 @@ from mapping.grid import HitCentroidGrid, OccupancyGrid
 from mapping.scan_points import scan_to_observation
 from slam.base import LOCALIZERS, create
 from slam.grid_kernels import frame_log_likelihood, hill_climb
-from slam.grid_rbpf import GridRbpf, GridRbpfConfig
+from slam.grid_rbpf import GridMatch, GridRbpf, GridRbpfConfig
 from slam.particle_filter import ParticleFilterConfig
 from slam.scan_proposal import gaussian_fit, lattice
 
@@ -87,11 +87,11 @@ def test_a_sharp_turn_is_matched_from_turned_starts(error_deg):
     prior = np.diag([0.05**2, 0.05**2, 0.2**2])
 
     def match(sigmas: float) -> np.ndarray:
-        cfg = GridRbpfConfig(match_turn_starts_sigma=sigmas)
+        cfg = GridRbpfConfig(match=GridMatch(turn_starts_sigma=sigmas))
         rbpf = create("grid-rbpf", WalkerCalibration(), cfg)
-        c = rbpf.config
+        c, m = rbpf.config, rbpf.config.match
         pose, _ = rbpf._match(
-            args, pts, start, prior, (c.match_kernel_cells, c.match_sigma_m, c.z_hit, c.z_rand)
+            args, pts, start, prior, (m.kernel_cells, m.sigma_m, c.z_hit, c.z_rand)
         )
         assert rbpf.counts["turn_starts"] == (1 if sigmas else 0)
         return between(true, pose)
@@ -99,8 +99,8 @@ def test_a_sharp_turn_is_matched_from_turned_starts(error_deg):
     alone, turned = match(0.0), match(1.5)
     assert abs(alone[2]) > math.radians(10.0)
     assert math.hypot(turned[0], turned[1]) < 0.01 and abs(turned[2]) < math.radians(0.5)
-    with pytest.raises(ValueError, match="match_turn_starts_sigma"):
-        GridRbpfConfig(match_turn_starts_sigma=-1.0)
+    with pytest.raises(ValueError, match="turn_starts_sigma"):
+        GridMatch(turn_starts_sigma=-1.0)
 
 
 def test_gaussian_fit_is_the_product_of_two_gaussians():
