@@ -89,6 +89,41 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
+    sim = Simulator(load_world(args.course), _sim_config(args))
+    folder = Path(args.dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    sock_path = folder / "sensors.sock"
+    server = _listen(sock_path)
+    board = _open_board(args.board, folder / "tty", sim.calibration.counts_per_rev)
+    stop = {"now": False}
+
+    def on_term(*_: object) -> None:
+        stop["now"] = True
+
+    signal.signal(signal.SIGTERM, on_term)
+    _say(
+        event="ready",
+        port=str(board.port),
+        socket=str(sock_path),
+        physics_rate_hz=sim.config.physics_rate_hz,
+    )
+    try:
+        _serve(server, sim, board, stop, args.accept_timeout)
+    except (TimeoutError, BrokenPipeError, ConnectionResetError) as e:
+        _say(event="error", error=str(e) or type(e).__name__)
+    finally:
+        # the board stays up until we are told to go (the live process releases the
+        # brakes through it, and the firmware's timeout must still run)
+        _wait_for_quit(board, stop)
+        board.close()
+        server.close()
+        sock_path.unlink(missing_ok=True)
+    return 0
+
+
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
+    """The command line (see the module docstring)."""
     ap = argparse.ArgumentParser(prog="python -m hardware.sim.live_world", description=__doc__)
     ap.add_argument("--dir", required=True, help="folder for the tty link and the socket")
     ap.add_argument("--course", default="thesis-course")
@@ -99,8 +134,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--depth-rate", type=int, default=10)
     ap.add_argument("--board", default="emulator", choices=("emulator", "firmware"))
     ap.add_argument("--accept-timeout", type=float, default=60.0)
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
 
+
+def _sim_config(args: argparse.Namespace) -> SimConfig:
+    """The simulation the command line asks for: a surface name or friction number, the
+    depth camera's size and rate, and a physics rate that is a multiple of every sensor's."""
     surface: str | float = args.surface
     with contextlib.suppress(ValueError):
         surface = float(args.surface)
@@ -109,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     rate = physics_rate(
         base.encoder_rate_hz, args.depth_rate, base.tag_rate_hz, base.groundtruth_rate_hz
     )
-    cfg = SimConfig(
+    return SimConfig(
         surface=surface,
         seed=args.seed,
         duration_s=args.duration,
@@ -118,48 +157,32 @@ def main(argv: list[str] | None = None) -> int:
         depth_width=width,
         depth_height=height,
     )
-    sim = Simulator(load_world(args.course), cfg)
-    cal = sim.calibration
-    folder = Path(args.dir)
-    folder.mkdir(parents=True, exist_ok=True)
-    sock_path = folder / "sensors.sock"
-    with contextlib.suppress(FileNotFoundError):
-        sock_path.unlink()
+
+
+def _listen(sock_path: Path) -> socket.socket:
+    """A stream socket listening at sock_path (replacing a stale one) for one client."""
+    sock_path.unlink(missing_ok=True)
     server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     server.bind(str(sock_path))
     server.listen(1)
-    board = _open_board(args.board, folder / "tty", cal.counts_per_rev)
-    stop = {"now": False}
+    return server
 
-    def on_term(*_: object) -> None:
-        stop["now"] = True
 
-    signal.signal(signal.SIGTERM, on_term)
-    _say(event="ready", port=str(board.port), socket=str(sock_path), physics_rate_hz=rate)
-    try:
-        server.settimeout(args.accept_timeout)
-        conn, _ = server.accept()
-        conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
-        _say(event="connected")
-        hello = {"type": "hello", "calibration": cal.to_dict(), "metadata": sim.metadata}
-        conn.sendall(stream.record(hello))
-        # the walker starts when the live process starts reading (it says so)
-        conn.settimeout(args.accept_timeout)
-        if conn.recv(3) != b"go\n":
-            raise ConnectionResetError("the live process did not start reading")
-        conn.settimeout(None)
-        _run(sim, board, Sender(conn), stop)
-    except (TimeoutError, BrokenPipeError, ConnectionResetError) as e:
-        _say(event="error", error=str(e) or type(e).__name__)
-    finally:
-        # the board stays up until we are told to go (the live process releases the
-        # brakes through it, and the firmware's timeout must still run)
-        _wait_for_quit(board, stop)
-        board.close()
-        server.close()
-        with contextlib.suppress(FileNotFoundError):
-            sock_path.unlink()
-    return 0
+def _serve(server: socket.socket, sim: Simulator, board, stop: dict, timeout_s: float) -> None:
+    """Accept the live process, send it the hello record (calibration and metadata), wait
+    for its "go" and run the simulated walker for it until the trial ends or stop."""
+    server.settimeout(timeout_s)
+    conn, _ = server.accept()
+    conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 << 20)
+    _say(event="connected")
+    hello = {"type": "hello", "calibration": sim.calibration.to_dict(), "metadata": sim.metadata}
+    conn.sendall(stream.record(hello))
+    # the walker starts when the live process starts reading (it says so)
+    conn.settimeout(timeout_s)
+    if conn.recv(3) != b"go\n":
+        raise ConnectionResetError("the live process did not start reading")
+    conn.settimeout(None)
+    _run(sim, board, Sender(conn), stop)
 
 
 class Sender:
@@ -247,15 +270,7 @@ def _run(sim: Simulator, board, conn: Sender, stop: dict) -> None:
         if (left, right) != duties:
             duties = (left, right)
             sim.send(BrakeCommand(sim.t, cal.torque(left), cal.torque(right), "board"))
-            _say(
-                event="brakes",
-                t=time.monotonic(),
-                sim_t=sim.t,
-                board_t=board_t,
-                **_last_command(board),
-                left=left,
-                right=right,
-            )
+            _say_brakes(board, board_t, left, right, sim_t=sim.t)
         ahead = sim.t - (time.monotonic() - t0)
         if ahead > 0:
             time.sleep(min(ahead, step))
@@ -268,6 +283,13 @@ def _run(sim: Simulator, board, conn: Sender, stop: dict) -> None:
         sent=conn.sent,
         dropped=conn.dropped,
     )
+
+
+def _say_brakes(board, board_t: float, left: int, right: int, sim_t: float | None = None) -> None:
+    """Tell of new brake outputs of the board (with the simulation's time while it runs)
+    and of the last valid command the board had received."""
+    times = {"t": time.monotonic()} if sim_t is None else {"t": time.monotonic(), "sim_t": sim_t}
+    _say(event="brakes", **times, board_t=board_t, **_last_command(board), left=left, right=right)
 
 
 def _last_command(board) -> dict:
@@ -296,14 +318,7 @@ def _wait_for_quit(board, stop: dict) -> None:
         board_t, left, right = board.brake_outputs()
         if (left, right) != last:
             last = (left, right)
-            _say(
-                event="brakes",
-                t=time.monotonic(),
-                board_t=board_t,
-                **_last_command(board),
-                left=left,
-                right=right,
-            )
+            _say_brakes(board, board_t, left, right)
 
 
 if __name__ == "__main__":
