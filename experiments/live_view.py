@@ -388,6 +388,33 @@ class ViewError(DeviceError):
     """The view's server cannot start (e.g. the port is taken); str() is one line."""
 
 
+def _start_server(
+    context: foxglove.Context, name: str, host: str, port: int, message_backlog: int | None
+) -> Any:
+    """The Foxglove WebSocket server of `context`, listening; `ViewError` if it cannot."""
+    try:
+        return foxglove.start_server(
+            name=name,
+            host=host,
+            port=port,
+            context=context,
+            message_backlog_size=message_backlog,
+        )
+    except RuntimeError as e:  # the SDK's FoxgloveError, e.g. the port is taken
+        raise ViewError(f"cannot serve the Foxglove view on {host}:{port}: {e}") from None
+
+
+def _gates(config: ViewConfig, clock: Callable[[], float]) -> dict[str, _Gate]:
+    """The rate gates of the pose, the trajectory, the map(s) and depth images."""
+    rates = (
+        ("pose", config.pose_hz),
+        ("trajectory", config.trajectory_hz),
+        ("grid", config.grid_hz),
+        ("depth", config.depth_hz),
+    )
+    return {name: _Gate(rate, config.busy_fraction, clock) for name, rate in rates}
+
+
 class FoxgloveView:
     """A Foxglove WebSocket server publishing a run (see the module docstring).
 
@@ -428,18 +455,25 @@ class FoxgloveView:
         self._lock = threading.Lock()  # counts and the log time, shared with the worker
         self._log_t = 0.0
         self._context = foxglove.Context()
-        try:
-            self._server = foxglove.start_server(
-                name=name,
-                host=host,
-                port=port,
-                context=self._context,
-                message_backlog_size=message_backlog,
-            )
-        except RuntimeError as e:  # the SDK's FoxgloveError, e.g. the port is taken
-            raise ViewError(f"cannot serve the Foxglove view on {host}:{port}: {e}") from None
+        self._server = _start_server(self._context, name, host, port, message_backlog)
         self._host = host
         self._closed = False
+        self._static: dict[str, Any] = self._slam_channels()
+        # hardware messages: (type, topic) -> the channels of their parts
+        self._parts: dict[tuple[type, str | None], list[foxglove.Channel]] = {}
+        self._channels: dict[str, foxglove.Channel] = {}
+        self._log_channels()
+        self._gates = _gates(self.config, clock)
+        self._queue: queue.Queue | None = None
+        self._worker: threading.Thread | None = None
+        if background:
+            self._queue = queue.Queue(maxsize=queue_size)
+            self._worker = threading.Thread(target=self._work, name="FoxgloveView", daemon=True)
+            self._worker.start()
+
+    def _slam_channels(self) -> dict[str, Any]:
+        """Make the channels of the SLAM state (pose, estimate, uncertainty, trajectory,
+        maps, tags, /tf); returns them by topic."""
         ctx = self._context
         self._pose = PoseInFrameChannel("/slam/pose", context=ctx)
         self._estimate = foxglove.Channel("/slam/estimate", schema=_ESTIMATE_SCHEMA, context=ctx)
@@ -449,7 +483,7 @@ class FoxgloveView:
         self._reference = GridChannel("/map/reference", context=ctx)
         self._tags = SceneUpdateChannel("/tags/scene", context=ctx)
         self._tf = FrameTransformsChannel("/tf", context=ctx)
-        self._static: dict[str, Any] = {
+        return {
             ch.topic(): ch
             for ch in (
                 self._pose,
@@ -462,34 +496,18 @@ class FoxgloveView:
                 self._tf,
             )
         }
-        # hardware messages: (type, topic) -> the channels of their parts. Those of every
-        # type the log knows are made now: a channel made while a client is connected is
-        # advertised to it a moment before the SDK accepts subscriptions to it, and a
-        # client that answers at once is refused ("Unknown channel ID") and never asks
-        # again. Messages on other topics get theirs on first use.
-        self._parts: dict[tuple[type, str | None], list[foxglove.Channel]] = {}
-        self._channels: dict[str, foxglove.Channel] = {}
+
+    def _log_channels(self) -> None:
+        """Make the channels of every message type the log knows, on its own topic.
+
+        They are made now: a channel made while a client is connected is advertised to
+        it a moment before the SDK accepts subscriptions to it, and a client that answers
+        at once is refused ("Unknown channel ID") and never asks again. Messages on other
+        topics get theirs on first use."""
         for cls, main in TOPICS.items():
             proto = _prototype(cls)
             if proto is not None:
-                parts = encode_parts(proto, main, 0)
-                self._parts[(cls, None)] = [self._channel(t, sch, main) for t, sch, _ in parts]
-        c = self.config
-        self._gates = {
-            name: _Gate(rate, c.busy_fraction, clock)
-            for name, rate in (
-                ("pose", c.pose_hz),
-                ("trajectory", c.trajectory_hz),
-                ("grid", c.grid_hz),
-                ("depth", c.depth_hz),
-            )
-        }
-        self._queue: queue.Queue | None = None
-        self._worker: threading.Thread | None = None
-        if background:
-            self._queue = queue.Queue(maxsize=queue_size)
-            self._worker = threading.Thread(target=self._work, name="FoxgloveView", daemon=True)
-            self._worker.start()
+                self._parts[(cls, None)] = self._part_channels(encode_parts(proto, main, 0), main)
 
     # -- server
 
@@ -613,7 +631,7 @@ class FoxgloveView:
             self._count(f"not_encodable:{type(msg).__name__}")
             return False
         if channels is None:
-            channels = [self._channel(t, schema, main) for t, schema, _ in parts]
+            channels = self._part_channels(parts, main)
             self._parts[key] = channels
         log_ns = self._log_ns(msg.t)
         for ch, (_, _, data) in zip(channels, parts, strict=True):
@@ -622,6 +640,10 @@ class FoxgloveView:
             self._gates["depth"].take(msg.t)
         self._count(type(msg).__name__)
         return True
+
+    def _part_channels(self, parts: list, main_topic: str) -> list[foxglove.Channel]:
+        """The channels of a message's encoded parts (topic, schema, data), made on first use."""
+        return [self._channel(t, schema, main_topic) for t, schema, _ in parts]
 
     def _channel(self, topic: str, schema: Any, main_topic: str) -> foxglove.Channel:
         ch = self._channels.get(topic)
