@@ -149,6 +149,14 @@ class ThreadedRecorder:
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
 
+    @classmethod
+    def open(
+        cls, path: Path, calibration: WalkerCalibration, metadata: dict[str, Any]
+    ) -> ThreadedRecorder:
+        """A recorder of a new trial log at `path` (its folder made if need be)."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return cls(LogWriter(path, calibration, metadata=metadata))
+
     def __call__(self, msg: Message) -> None:
         self.last = max(self.last, msg.t)
         self._q.put((msg, self.last))
@@ -425,9 +433,8 @@ class LiveRun:
         opts = self.options
         if opts.record:
             self.files["log"] = Path(opts.record)
-            self.files["log"].parent.mkdir(parents=True, exist_ok=True)
             meta = {"config": self.config, **self.metadata}
-            self.recorder = ThreadedRecorder(LogWriter(self.files["log"], self.cal, metadata=meta))
+            self.recorder = ThreadedRecorder.open(self.files["log"], self.cal, meta)
         record = self.recorder
         on_command: Callable[[BrakeCommand, DepthFrame | LaserScan | None], None] = self.latency
         if opts.foxglove_port is not None:
@@ -667,26 +674,10 @@ def bench_board(
     writer = None
     if record:
         files["log"] = Path(record)
-        files["log"].parent.mkdir(parents=True, exist_ok=True)
-        config_record = {
-            "command": "board",
-            "port": str(port),
-            "brake_nm": list(brake_nm) if brake_nm else None,
-            "duration_s": duration_s,
-        }
-        writer = ThreadedRecorder(
-            LogWriter(files["log"], cal, metadata={"config": config_record, **board.metadata})
-        )
-
-    def closer() -> None:
-        stop.wait(duration_s)
-        board.close()  # zero brake; ends messages()
-
-    watcher = threading.Thread(target=closer, name="board-bench-stop", daemon=True)
-    watcher.start()
+        writer = _bench_recorder(files["log"], cal, board, port, brake_nm, duration_s)
+    watcher = _close_when(stop, duration_s, board)
     t0 = clock.now()
-    ticks, counts, last_update = 0, (0, 0), -math.inf
-    recent: deque[float] = deque(maxlen=500)
+    counts = _BenchCounts()
     try:
         if brake_nm is not None:
             cmd = BrakeCommand(clock.now(), brake_nm[0], brake_nm[1], "board-bench")
@@ -696,25 +687,10 @@ def bench_board(
         for msg in board.messages():
             if writer is not None:
                 writer(msg)
-            if isinstance(msg, EncoderTicks):
-                ticks += 1
-                counts = (msg.left, msg.right)
-                recent.append(msg.t)
+            counts.add(msg)
             now = clock.now()
-            if on_update is not None and now - last_update >= 0.1:
-                last_update = now
-                tick = board.stats.last_tick
-                rate = sum(1 for t in recent if now - t <= 1.0)
-                on_update(
-                    BoardReading(
-                        now - t0,
-                        counts,
-                        float(rate),
-                        (tick.pwm_left, tick.pwm_right) if tick else None,
-                        bool(tick and tick.timed_out),
-                        board.stats,
-                    )
-                )
+            if on_update is not None and now - counts.last_update >= 0.1:
+                on_update(counts.reading(now, now - t0, board))
     finally:
         stop.set()
         board.close()
@@ -724,4 +700,69 @@ def bench_board(
                 off = cal.brake.torque_off_nm
                 writer(BrakeCommand(clock.now(), off, off, "board-bench"))
             writer.close()
-    return BoardBenchResult(hs, clock.now() - t0, ticks, counts, board.stats.to_dict(), files)
+    return BoardBenchResult(
+        hs, clock.now() - t0, counts.ticks, counts.counts, board.stats.to_dict(), files
+    )
+
+
+def _bench_recorder(
+    path: Path,
+    cal: WalkerCalibration,
+    board: ArduinoBoard,
+    port: str,
+    brake_nm: tuple[float, float] | None,
+    duration_s: float | None,
+) -> ThreadedRecorder:
+    """The bench tool's trial log, with its settings and the board's metadata."""
+    settings = {
+        "command": "board",
+        "port": str(port),
+        "brake_nm": list(brake_nm) if brake_nm else None,
+        "duration_s": duration_s,
+    }
+    return ThreadedRecorder.open(path, cal, {"config": settings, **board.metadata})
+
+
+def _close_when(stop: threading.Event, duration_s: float | None, board) -> threading.Thread:
+    """A started thread that closes the board (zero brake; its messages() ends) when
+    `stop` is set or after duration_s (None: only on stop)."""
+
+    def closer() -> None:
+        stop.wait(duration_s)
+        board.close()
+
+    watcher = threading.Thread(target=closer, name="board-bench-stop", daemon=True)
+    watcher.start()
+    return watcher
+
+
+class _BenchCounts:
+    """What the bench tool counts: encoder messages, the latest counts, and the times of
+    the recent ones (for the rate over the last second)."""
+
+    def __init__(self) -> None:
+        self.ticks = 0
+        self.counts = (0, 0)
+        self.recent: deque[float] = deque(maxlen=500)
+        self.last_update = -math.inf
+
+    def add(self, msg: Message) -> None:
+        """Count one message from the board (only encoder messages count)."""
+        if isinstance(msg, EncoderTicks):
+            self.ticks += 1
+            self.counts = (msg.left, msg.right)
+            self.recent.append(msg.t)
+
+    def reading(self, now: float, elapsed: float, board: ArduinoBoard) -> BoardReading:
+        """The display's update at host time `now` (`elapsed` since the start)."""
+        self.last_update = now
+        tick = board.stats.last_tick
+        rate = sum(1 for t in self.recent if now - t <= 1.0)
+        return BoardReading(
+            elapsed,
+            self.counts,
+            float(rate),
+            (tick.pwm_left, tick.pwm_right) if tick else None,
+            bool(tick and tick.timed_out),
+            board.stats,
+        )
