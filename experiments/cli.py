@@ -594,13 +594,15 @@ def list_names(
         typer.Argument(help="a localizer, controller or dataset format: its settings"),
     ] = None,
 ) -> None:
-    """List built-in courses, localizers, controllers and dataset formats; with a NAME,
+    """List built-in courses, localizers, controllers, dataset formats and live devices;
+    with a NAME,
     its settings (what `--set NAME.FIELD=VALUE` takes) with their defaults."""
     from rich.text import Text
 
     from control.base import CONTROLLERS
     from experiments.config import describe
     from hardware.datasets import FORMATS
+    from hardware.devices import DEPTH_CAMERAS, TAG_CAMERAS, forms
     from hardware.errors import UnknownNameError
     from hardware.sim.world import available_courses
     from slam.base import LOCALIZERS
@@ -610,6 +612,8 @@ def list_names(
         console.print("courses:         " + ", ".join(available_courses()), highlight=False)
         for reg in registries:
             console.print(f"{reg.kind + 's:':16s} " + ", ".join(reg.names()), highlight=False)
+        for reg in (DEPTH_CAMERAS, TAG_CAMERAS):  # devices: --depth / --camera of live
+            console.print(f"{reg.kind + 's:':16s} " + ", ".join(forms(reg)), highlight=False)
         console.print("settings of one: walkerslam list NAME", highlight=False)
         return
     for reg in registries:

@@ -120,12 +120,16 @@ def live(
         str | None, typer.Option(help="the board's serial port, e.g. /dev/ttyACM0")
     ] = None,
     depth: Annotated[
-        str, typer.Option(help="kinect, kinect:INDEX, realsense, fakenect:DIR or none")
+        str,
+        typer.Option(
+            help="kinect, kinect:INDEX, realsense, fakenect:DIR or none; all: walkerslam list"
+        ),
     ] = "none",
     camera: Annotated[
         str,
         typer.Option(
-            help="tag camera: a device INDEX, a video file or image folder, kinect, or none"
+            help="tag camera: a device INDEX, a video file or image folder, kinect, or none; "
+            "all: walkerslam list"
         ),
     ] = "none",
     camera_calibration: Annotated[

@@ -132,11 +132,10 @@ from hardware import fakenect as fk
 from hardware import kinect_worker as wire
 from hardware.calibration import WalkerCalibration
 from hardware.clock import ClockMap, HostClock
+from hardware.devices import DEPTH_CAMERAS, DeviceSpec, lookup, split_spec
 from hardware.errors import DeviceError
 from hardware.messages import CameraIntrinsics, DepthFrame
 from hardware.source import Source
-
-SPECS = ("kinect", "kinect:INDEX", "realsense", "fakenect:DIR")
 
 KINECT_WIDTH = fk.WIDTH
 KINECT_HEIGHT = fk.HEIGHT
@@ -684,25 +683,24 @@ def _check_binding() -> None:
         )
 
 
+def _kinect_index(arg: str | None) -> int:
+    if arg is None:
+        return 0
+    if not arg.isdigit():
+        raise DeviceError(f"kinect:INDEX needs a device index >= 0, got 'kinect:{arg}'")
+    return int(arg)
+
+
 def _parse_kinect_device(device: int | str) -> tuple[int, Path | None]:
     """(index, fakenect folder or None) of an index or a spec kinect[:INDEX] / fakenect:DIR."""
-    if isinstance(device, int):
-        spec = f"kinect:{device}"
-    else:
-        spec = str(device)
-    if spec == "kinect":
-        return 0, None
-    if spec.startswith("kinect:"):
-        text = spec[len("kinect:") :]
-        if not text.isdigit():
-            raise DeviceError(f"kinect:INDEX needs a device index >= 0, got {spec!r}")
-        return int(text), None
-    if spec.startswith("fakenect:"):
-        folder = spec[len("fakenect:") :]
-        if not folder:
+    name, arg = split_spec(f"kinect:{device}" if isinstance(device, int) else device)
+    if name == "kinect":
+        return _kinect_index(arg), None
+    if name == "fakenect":
+        if not arg:
             raise DeviceError("fakenect:DIR needs a recording folder")
-        return 0, Path(folder)
-    raise DeviceError(f"unknown Kinect {spec!r}; valid: kinect, kinect:INDEX, fakenect:DIR")
+        return 0, Path(arg)
+    raise DeviceError(f"unknown Kinect {device!r}; valid: kinect, kinect:INDEX, fakenect:DIR")
 
 
 def _subscribe(
@@ -1118,24 +1116,57 @@ class RealSenseDepthSource:
         self.close()
 
 
-# --------------------------------------------------------------------------- entry point
+# ------------------------------------------------------------- the registry's members
+
+
+def _open_kinect(
+    arg: str | None, calibration: WalkerCalibration, clock: HostClock, **options: Any
+) -> KinectDepthSource:
+    return KinectDepthSource(calibration, clock, index=_kinect_index(arg), **options)
+
+
+def _open_fakenect(
+    arg: str | None, calibration: WalkerCalibration, clock: HostClock, **options: Any
+) -> KinectDepthSource:
+    _, folder = _parse_kinect_device(f"fakenect:{arg or ''}")
+    return KinectDepthSource(calibration, clock, fakenect=folder, **options)
+
+
+def _open_realsense(
+    arg: str | None, calibration: WalkerCalibration, clock: HostClock, **options: Any
+) -> RealSenseDepthSource:
+    if arg is not None:
+        raise DeviceError(f"realsense takes no argument, got 'realsense:{arg}'")
+    return RealSenseDepthSource(calibration, clock, **options)
+
+
+KINECT = DeviceSpec(
+    "kinect", None, _open_kinect, "Kinect v1 through libfreenect", forms=("kinect", "kinect:INDEX")
+)
+FAKENECT = DeviceSpec(
+    "fakenect",
+    None,
+    _open_fakenect,
+    "a fakenect recording replayed through the real libfreenect sync API",
+    forms=("fakenect:DIR",),
+)
+REALSENSE = DeviceSpec(
+    "realsense",
+    None,
+    _open_realsense,
+    "the first Intel RealSense (pip install 'walker-slam[realsense]')",
+    forms=("realsense",),
+)
 
 
 def open_depth(
     spec: str, calibration: WalkerCalibration, clock: HostClock, **options: Any
 ) -> Source:
-    """Open the depth camera `spec` (kinect, kinect:INDEX, realsense, fakenect:DIR).
+    """Open the depth camera `spec` (NAME[:ARG] of hardware.devices.DEPTH_CAMERAS: kinect,
+    kinect:INDEX, fakenect:DIR, realsense, and any an installed package adds).
 
     options go to the source (`KinectDepthSource`, `RealSenseDepthSource`): e.g.
     decimation, range_m, stamp. Raises DeviceError (one line) when it cannot open.
     """
-    spec = str(spec)
-    if spec == "realsense":
-        return RealSenseDepthSource(calibration, clock, **options)
-    if spec == "kinect" or spec.startswith("kinect:"):
-        index, _ = _parse_kinect_device(spec)
-        return KinectDepthSource(calibration, clock, index=index, **options)
-    if spec.startswith("fakenect:"):
-        _, folder = _parse_kinect_device(spec)
-        return KinectDepthSource(calibration, clock, fakenect=folder, **options)
-    raise DeviceError(f"unknown depth camera {spec!r}; valid: {', '.join(SPECS)}")
+    member, arg = lookup(DEPTH_CAMERAS, spec)
+    return member.factory(arg, calibration, clock, **options)

@@ -86,7 +86,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
 import threading
 import time
 import weakref
@@ -107,6 +106,7 @@ from hardware.camera_calibration import (
     with_tag_camera,
 )
 from hardware.clock import HostClock
+from hardware.devices import TAG_CAMERAS, DeviceSpec, forms, split_spec
 from hardware.errors import DeviceError
 from hardware.frames import make_transform
 from hardware.messages import CameraIntrinsics, TagDetection, TagDetections
@@ -565,31 +565,78 @@ class _Pacer:
         return not stop.is_set()
 
 
-def parse_spec(
-    spec: int | str | os.PathLike[str],
-) -> tuple[str, int | str | Path]:
-    """A tag camera spec → ("device", index) | ("kinect", spec) | ("path", Path)."""
+def _open_device(arg, clock, *, width=None, height=None, fps=None) -> VideoCaptureFrames:
+    if arg is None or not arg.isdigit():
+        raise TagCameraError(f"tag camera device:INDEX needs an index >= 0, got {arg!r}")
+    return VideoCaptureFrames(int(arg), clock, width=width, height=height, fps=fps)
+
+
+def _open_kinect(arg, clock, **_: Any) -> KinectFrames:
+    return KinectFrames("kinect" if arg is None else f"kinect:{arg}", clock)
+
+
+def _open_fakenect(arg, clock, **_: Any) -> KinectFrames:
+    return KinectFrames(f"fakenect:{arg or ''}", clock)
+
+
+def _open_video(arg, clock, *, fps=None, **_: Any) -> VideoCaptureFrames:
+    return VideoCaptureFrames(Path(arg or ""), clock, fps=fps)
+
+
+def _open_images(arg, clock, *, fps=None, **_: Any) -> ImageFolderFrames:
+    return ImageFolderFrames(Path(arg or ""), clock, fps=fps)
+
+
+DEVICE = DeviceSpec(
+    "device", None, _open_device, "a camera through OpenCV", forms=("INDEX", "device:INDEX")
+)
+KINECT = DeviceSpec(
+    "kinect", None, _open_kinect, "the Kinect's RGB stream", forms=("kinect", "kinect:INDEX")
+)
+FAKENECT = DeviceSpec(
+    "fakenect", None, _open_fakenect, "a fakenect recording's RGB", forms=("fakenect:DIR",)
+)
+VIDEO = DeviceSpec(
+    "video",
+    None,
+    _open_video,
+    "a video file or V4L2 device path through OpenCV",
+    forms=("video:PATH", "a video file", "/dev/videoN"),
+)
+IMAGES = DeviceSpec(
+    "images",
+    None,
+    _open_images,
+    "an image, or a folder of images in name order",
+    forms=("images:PATH", "an image or image folder"),
+)
+
+
+def parse_spec(spec: int | str | os.PathLike[str]) -> tuple[str, str | None]:
+    """A tag camera spec → (member name, ARG) of hardware.devices.TAG_CAMERAS: a device
+    index (int or digits) stands for device:INDEX, an existing path for video:PATH or
+    images:PATH (by its suffix; a folder is images), anything else is NAME[:ARG]."""
     if isinstance(spec, bool):
         raise TagCameraError(f"unknown tag camera {spec!r}")
     if isinstance(spec, int):
         if spec < 0:
             raise TagCameraError(f"tag camera {spec}: a device index must be >= 0")
-        return "device", spec
-    if isinstance(spec, str):
-        s = spec.strip()
-        if re.fullmatch(r"\d+", s):
-            return "device", int(s)
-        if re.fullmatch(r"kinect(:\d+)?", s) or s.startswith("fakenect:"):
-            return "kinect", s
-    if isinstance(spec, str | os.PathLike):
-        p = Path(spec)
-        if p.exists():
-            return "path", p
-        raise TagCameraError(
-            f"unknown tag camera {str(spec)!r}: not a device index, 'kinect[:N]', "
-            "'fakenect:DIR', or an existing video file, image or image folder"
-        )
-    raise TagCameraError(f"unknown tag camera {spec!r}")
+        return "device", str(spec)
+    if not isinstance(spec, str | os.PathLike):
+        raise TagCameraError(f"unknown tag camera {spec!r}")
+    text = str(spec).strip()
+    if text.isdigit():
+        return "device", text
+    path = Path(spec)
+    if path.exists():
+        images = path.is_dir() or path.suffix.lower() in IMAGE_SUFFIXES
+        return ("images" if images else "video"), str(path)
+    if isinstance(spec, str) and split_spec(text)[0] in TAG_CAMERAS.names():
+        return split_spec(text)
+    raise TagCameraError(
+        f"unknown tag camera {str(spec)!r}: not an existing file or folder; valid: "
+        f"{', '.join(forms(TAG_CAMERAS))}"
+    )
 
 
 def open_frames(
@@ -601,17 +648,8 @@ def open_frames(
     fps: float | None = None,
 ) -> FrameSource:
     """The frame source of a tag camera spec (see `open_tag_camera`)."""
-    kind, target = parse_spec(spec)
-    if kind == "device":
-        assert isinstance(target, int)
-        return VideoCaptureFrames(target, clock, width=width, height=height, fps=fps)
-    if kind == "kinect":
-        assert isinstance(target, str)
-        return KinectFrames(target, clock)
-    assert isinstance(target, Path)
-    if target.is_dir() or target.suffix.lower() in IMAGE_SUFFIXES:
-        return ImageFolderFrames(target, clock, fps=fps)
-    return VideoCaptureFrames(target, clock, fps=fps)
+    name, arg = parse_spec(spec)
+    return TAG_CAMERAS.spec(name).factory(arg, clock, width=width, height=height, fps=fps)
 
 
 # -- the tag camera source --------------------------------------------------------------

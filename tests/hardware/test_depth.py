@@ -506,7 +506,7 @@ def test_unknown_spec_lists_the_valid_forms():
     with pytest.raises(DeviceError) as e:
         open_depth("webcam", WalkerCalibration(), HostClock())
     assert _one_line(e) == (
-        "unknown depth camera 'webcam'; valid: kinect, kinect:INDEX, realsense, fakenect:DIR"
+        "unknown depth camera 'webcam'; valid: fakenect:DIR, kinect, kinect:INDEX, realsense"
     )
     with pytest.raises(DeviceError, match="device index"):
         open_depth("kinect:first", WalkerCalibration(), HostClock())
