@@ -12,6 +12,8 @@ import numpy as np
 from hardware.calibration import WalkerCalibration
 from hardware.messages import Message
 from hardware.registry import Registry, UnknownNameError
+from mapping.grid import GridExtent
+from mapping.mapper import OccupancyMapper, Projection
 from slam.trajectory import Trajectory
 
 __all__ = [
@@ -98,7 +100,7 @@ class FrameConsumer(Protocol):
     once (`mapping.mapper.OccupancyMapper.project`) and hands the same projection to it
     and to the mappers, instead of `process(msg)`."""
 
-    def process_frame(self, msg: Message, projection: Any) -> None: ...
+    def process_frame(self, msg: Message, projection: Projection) -> None: ...
 
 
 @runtime_checkable
@@ -107,7 +109,7 @@ class MapScorer(Protocol):
     with scans; grid-rbpf takes its particles' maps' settings from it): the pipeline
     hands its mapper over with `attach_map`."""
 
-    def attach_map(self, source: Any) -> None: ...
+    def attach_map(self, source: OccupancyMapper | GridExtent | None) -> None: ...
 
 
 # Members: the entry points of group "walker_slam.localizers" (pyproject.toml).

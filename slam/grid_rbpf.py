@@ -179,13 +179,12 @@ class GridRbpf(ParticleFilter):
         self.attach_map(None)
 
     # -- the particles' maps --------------------------------------------------------------
-    def attach_map(self, source) -> None:
+    def attach_map(self, source: OccupancyMapper | GridExtent | None) -> None:
         """Particle maps are built with the configuration of `source` (an OccupancyMapper:
         the pipeline's shared mapper) when it has one; they start empty."""
         super().attach_map(source)
-        cfg = getattr(source, "config", None)
-        if isinstance(cfg, MapperConfig):
-            self._map_config = cfg
+        if isinstance(source, OccupancyMapper):
+            self._map_config = source.config
         # the score reads log-odds and the cells' hit centroids
         grid_cfg = replace(self._map_config.grid, model="log-odds-hits")
         self._map_config = replace(self._map_config, grid=grid_cfg)

@@ -77,6 +77,7 @@ from hardware.choices import Choice, coerce
 from hardware.geometry import wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
+from mapping.grid import GridExtent
 from mapping.mapper import OccupancyMapper, Projection
 from slam.base import KnownMapConfig, Localizer, PoseEstimate
 from slam.measurement import (
@@ -279,7 +280,7 @@ class ParticleFilter(Localizer):
         self.calibration = calibration
         self.odometry = OdometryModel(calibration, config.noise)
         self.rng = np.random.default_rng(config.seed)
-        self.map_source: Any = None
+        self.map_source: OccupancyMapper | GridExtent | None = None
         self._projector: OccupancyMapper | None = None  # frames given without the pipeline
         n = config.n_particles
         self.particles = np.array(config.initial_pose, dtype=float) + self.rng.standard_normal(
@@ -323,16 +324,16 @@ class ParticleFilter(Localizer):
         self._delta_cov = np.zeros((3, 3))
 
     # -- the map the scan likelihood uses ------------------------------------------------
-    def attach_map(self, source: Any) -> None:
+    def attach_map(self, source: OccupancyMapper | GridExtent | None) -> None:
         """Score depth frames / laser scans against `source`: an OccupancyMapper (its
-        `.grid` is read at every frame, so the map may grow) or a grid with `occupied()`,
-        `origin`, `resolution` and `shape`. None detaches."""
+        `.grid` is read at every frame, so the map may grow) or a fixed grid. None
+        detaches."""
         self.map_source = source
         self._field, self._field_t = None, -math.inf
 
-    def _grid(self) -> Any:
+    def _grid(self) -> GridExtent | None:
         src = self.map_source
-        return None if src is None else getattr(src, "grid", src)
+        return src.grid if isinstance(src, OccupancyMapper) else src
 
     # -- inputs ---------------------------------------------------------------------------
     def process(self, msg: Message) -> None:
@@ -528,8 +529,7 @@ class ParticleFilter(Localizer):
         p_rand = c.z_rand / c.max_range_m
         log_p = np.log(p_hit * np.exp(-0.5 * (dist / c.sigma_hit_m) ** 2) + p_rand)
         flat = np.append(log_p.ravel(), math.log(p_rand))  # last: outside the window
-        known = np.asarray(grid.known())[window] if hasattr(grid, "known") else None
-        known = np.ones(occupied.shape, dtype=bool) if known is None else known
+        known = np.asarray(grid.known())[window]
         return _Field(
             flat,
             np.append(known.ravel(), False),
