@@ -27,10 +27,12 @@
  *  - Tick reports: a report is sampled every period; if the TX ring has no room for
  *    it when the main loop formats it (the rate asks for more than the UART can
  *    carry), it is dropped, and its seq is skipped, so the host sees the gap.
- *  - Command timeout: a valid B line restarts a millisecond counter; at its 299th
- *    tick (298-299 ms later: within 300 ms of the command's newline, whatever the
- *    phase of the millisecond clock) both duties go to 0 (in the 1 ms interrupt, so
- *    a slow main loop cannot delay it). cmd_timeouts counts the timeouts that released a non-zero duty.
+ *  - Command timeout: a valid B line restarts a millisecond counter from the
+ *    millisecond its newline arrived (the receive interrupt stamps every byte, so
+ *    the time the main loop takes to reach the line does not extend it); at its
+ *    299th tick (298-299 ms after the newline, whatever the phase of the millisecond
+ *    clock) both duties go to 0 (in the 1 ms interrupt, so a slow main loop cannot
+ *    delay it). cmd_timeouts counts the timeouts that released a non-zero duty.
  *  - cmd_seq_gaps: a B line whose seq is ahead of the previous one by d (modulo
  *    2^32, d < 2^31) adds d - 1; a seq that did not move forward (a restarted host)
  *    adds nothing.
@@ -56,6 +58,9 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <util/atomic.h>
+#ifdef WALKER_TEST_HOOKS
+#include <util/delay.h>
+#endif
 
 #define PROTOCOL_VERSION 1
 #ifdef WALKER_TEST_HOOKS
@@ -206,6 +211,7 @@ static void brakes_init(void)
 
 static volatile uint32_t us_at_tick; /* board time at the last 1 ms tick */
 static volatile uint16_t cmd_age_ms;
+static volatile uint8_t ms8; /* milliseconds, modulo 256: the receive stamps */
 static volatile uint8_t cmd_timed_out = 1; /* brakes released until the first B */
 static volatile uint32_t cmd_timeouts;
 static volatile uint16_t report_period_ms = (1000 + DEFAULT_RATE_HZ / 2) / DEFAULT_RATE_HZ;
@@ -235,6 +241,7 @@ static uint32_t now_us(void)
 ISR(TIMER2_COMPA_vect)
 {
     us_at_tick += 1000u;
+    ms8++;
     /* the tick that makes the age CMD_TIMEOUT_MS - 1 comes 298-299 ms after the
      * command was parsed: released within 300 ms of its newline, whatever the phase */
     if (!cmd_timed_out && ++cmd_age_ms >= CMD_TIMEOUT_MS - 1) {
@@ -276,6 +283,7 @@ static void clock_init(void)
 #define TX_SIZE 256
 
 static volatile uint8_t rx_buf[RX_SIZE];
+static volatile uint8_t rx_ms8[RX_SIZE]; /* ms8 when each byte arrived */
 static volatile uint8_t rx_head, rx_tail;
 static volatile uint8_t rx_lost;
 static volatile uint8_t tx_buf[TX_SIZE];
@@ -293,6 +301,7 @@ ISR(USART_RX_vect)
         return;
     }
     rx_buf[rx_head] = c;
+    rx_ms8[rx_head] = ms8;
     rx_head = next;
 }
 
@@ -524,6 +533,14 @@ static void test_hang(void)
     for (;;) {
     }
 }
+
+/* The main loop busy for ms milliseconds, interrupts on (lines arriving meanwhile wait
+ * in the receive ring, as behind a slow report) */
+static void test_busy(uint8_t ms)
+{
+    while (ms--)
+        _delay_ms(1);
+}
 #endif
 
 static void set_rate(uint16_t rate)
@@ -537,6 +554,8 @@ static void set_rate(uint16_t rate)
     report_rate_hz = rate;
 }
 
+static uint8_t line_ms8; /* ms8 when the newline of the line being handled arrived */
+
 static void handle_brake(uint32_t seq, uint8_t left, uint8_t right)
 {
     if (have_cmd_seq) {
@@ -549,7 +568,9 @@ static void handle_brake(uint32_t seq, uint8_t left, uint8_t right)
     ATOMIC_BLOCK(ATOMIC_RESTORESTATE)
     {
         brakes_apply(left, right);
-        cmd_age_ms = 0;
+        /* the age since the newline arrived (the main loop reaches a line well within
+         * the 250 ms watchdog, so modulo 256 is unambiguous) */
+        cmd_age_ms = (uint8_t)(ms8 - line_ms8);
         cmd_timed_out = 0;
     }
 }
@@ -626,9 +647,16 @@ static void handle_line(char *s, uint8_t len)
         send_handshake();
         return;
 #ifdef WALKER_TEST_HOOKS
-    case 'X':
-        if (nfields < 1 || !parse_u32(fields[0], 1, 1, &a))
+    case 'X': /* X,1: hang with interrupts off; X,2,MS: keep the main loop busy MS ms */
+        if (nfields < 1 || !parse_u32(fields[0], 1, 2, &a))
             break;
+        if (a == 2) {
+            if (nfields < 2 || !parse_u32(fields[1], 1, 100, &b))
+                break;
+            rx_lines++;
+            test_busy((uint8_t)b);
+            return;
+        }
         rx_lines++;
         test_hang();
         return;
@@ -674,6 +702,7 @@ static void receive(void)
         if (rx_tail == rx_head)
             return;
         c = rx_buf[rx_tail];
+        line_ms8 = rx_ms8[rx_tail];
         ATOMIC_BLOCK(ATOMIC_RESTORESTATE) { rx_tail = (uint8_t)((rx_tail + 1) % RX_SIZE); }
         receive_byte(c);
     }
