@@ -49,11 +49,9 @@ from hardware.messages import DepthFrame, LaserScan
 from hardware.registry import Spec
 from mapping.grid import GridExtent, HitCentroidGrid, make_grid
 from mapping.mapper import MapperConfig, OccupancyMapper, Projection
-from slam.base import KnownMapConfig, PoseEstimate
+from slam.base import PoseEstimate
 from slam.grid_kernels import frame_log_likelihood, hill_climb, poses_log_likelihood
-from slam.measurement import BEARING_SIGMA_RAD, RANGE_SIGMA_FRAC, RANGE_SIGMA_M
-from slam.motion import MotionNoise
-from slam.particle_filter import ParticleFilter, ParticleFilterConfig
+from slam.particle_filter import ParticleFilter, ParticleFilterConfig, ParticleSettings
 from slam.particle_paths import ParticlePaths
 from slam.scan_proposal import ProposalLattice, gaussian_fit, lattice, sample_gaussians
 from slam.trajectory import Trajectory
@@ -93,60 +91,40 @@ class GridMatch:
 
 
 @dataclass(frozen=True)
-class GridRbpfConfig(KnownMapConfig):
-    """Per-particle-map filter settings (the module docstring has the algorithm).
+class GridRbpfConfig(ParticleSettings):
+    """Per-particle-map filter settings (the module docstring has the algorithm):
+    slam.particle_filter.ParticleSettings (the machinery this filter reuses; n_particles
+    are particles each with its own grid), and
 
-    initial_pose, initial_sigma, noise, landmark_map, use_landmarks, the landmark noise
-    (range_sigma_m, range_sigma_frac, bearing_sigma_rad, outlier_prob, outlier_range_m),
-    max_beams, max_range_m, min_points, scan_every_m / scan_every_rad, seed,
-    resample_threshold: as in slam.particle_filter.ParticleFilterConfig, whose machinery
-    this filter reuses. n_particles: particles, each with its own grid. sigma_floor
-    (x, y, θ): added to the odometry prior's σ of each particle (in quadrature) before
-    its match. match: the scan match per particle (GridMatch), with z_hit, z_rand as the
-    shared-map filter's. weight_gain: a frame's log-weights are divided by it (GMapping's
-    "ogain"): the proposal follows the sharp likelihood while the weights, which decide
-    which particles (and maps) survive, are smoothed, so that resampling does not
-    deplete the particles at every frame. The defaults were chosen on the Intel lab log
-    (BENCHMARKS.md: 60 particles, σ 0.03 m, gain 20; 30 particles fail a late loop on
-    some seeds).
+    sigma_floor (x, y, θ): added to the odometry prior's σ of each particle (in
+        quadrature) before its match.
+    match: the scan match per particle (GridMatch), with z_hit, z_rand.
+    weight_gain: a frame's log-weights are divided by it (GMapping's "ogain"): the
+        proposal follows the sharp likelihood while the weights, which decide which
+        particles (and maps) survive, are smoothed, so that resampling does not deplete
+        the particles at every frame.
+    The defaults were chosen on the Intel lab log (BENCHMARKS.md: 60 particles, σ 0.03 m,
+    gain 20; 30 particles fail a late loop on some seeds).
     """
 
-    initial_sigma: tuple[float, float, float] = (0.0, 0.0, 0.0)
     n_particles: int = 60
-    noise: MotionNoise = field(default_factory=MotionNoise)
-    range_sigma_m: float = RANGE_SIGMA_M
-    range_sigma_frac: float = RANGE_SIGMA_FRAC
-    bearing_sigma_rad: float = BEARING_SIGMA_RAD
-    use_landmarks: bool = True
-    z_hit: float = 0.9
-    z_rand: float = 0.1
-    max_beams: int = 60
-    max_range_m: float = 3.5
-    min_points: int = 10
-    scan_every_m: float = 0.2
-    scan_every_rad: float = 0.2
-    seed: int = 0
-    resample_threshold: float = 0.5
-    outlier_prob: float = 0.01
-    outlier_range_m: float = 10.0
     sigma_floor: tuple[float, float, float] = (0.01, 0.01, 0.005)
     match: GridMatch = field(default_factory=lambda: GridMatch())
     weight_gain: float = 20.0
 
     def __post_init__(self) -> None:
-        if self.n_particles < 1:
-            raise ValueError(f"n_particles must be >= 1, got {self.n_particles}")
+        super().__post_init__()
         if self.weight_gain < 1.0:
             raise ValueError(f"weight_gain must be >= 1, got {self.weight_gain}")
-        self.machinery()  # the shared filter's checks of the fields it takes
+        if len(self.sigma_floor) != 3 or min(self.sigma_floor) < 0:
+            raise ValueError(f"sigma_floor must be three values >= 0, got {self.sigma_floor}")
 
     def machinery(self) -> ParticleFilterConfig:
         """The shared-map filter's parameters for the machinery this filter reuses
         (prediction, landmark weighting, resampling, the scan proposal's odometry)."""
-        shared = {f.name for f in fields(ParticleFilterConfig)}
-        kept = {f.name: getattr(self, f.name) for f in fields(self) if f.name in shared}
+        shared = {f.name: getattr(self, f.name) for f in fields(ParticleSettings)}
         return ParticleFilterConfig(
-            **kept,
+            **shared,
             use_scans=True,
             proposal="scan",
             smoother="none",

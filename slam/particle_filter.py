@@ -130,8 +130,9 @@ class Proposal(Choice):
 
 
 @dataclass(frozen=True)
-class ParticleFilterConfig(KnownMapConfig):
-    """Particle filter (Monte Carlo localization) settings.
+class ParticleSettings(KnownMapConfig):
+    """What the particle filters here share (this one and slam.grid_rbpf's, which reuses
+    its machinery: prediction, landmark weighting, resampling).
 
     initial_pose: (x, y, θ) at the first message (defines the map frame).
     initial_sigma: (σx [m], σy [m], σθ [rad]) of the initial particle cloud around it
@@ -144,27 +145,13 @@ class ParticleFilterConfig(KnownMapConfig):
         `slam.base.create(..., landmark_map=...)`; None: landmarks are not used.
     use_landmarks: False ignores the landmark map (scans only, e.g. to study
         localization without tags on a trial whose log knows them).
-    use_scans: weight by depth frames / laser scans against the attached occupancy map
-        (`ParticleFilter.attach_map`). Off by default: against the shared map, which is
-        built at this filter's own estimates, each frame's small matching error becomes
-        part of the map the next frame is matched to, and on the simulated course that
-        drifts more than the odometry does (see tests/slam/test_particle_filter.py).
-    sigma_hit_m: σ of the likelihood field's Gaussian around occupied cells.
-    z_hit, z_rand: weights of the field's Gaussian and of a uniform over max_range_m
-        (z_rand keeps one stray point from vetoing a particle).
+    z_hit, z_rand: weights of a frame point's Gaussian around the map's occupied cells
+        and of a uniform over max_range_m (z_rand keeps one stray point from vetoing a
+        particle).
     max_beams: obstacle points scored per frame, subsampled at random (seeded).
     max_range_m: points farther than this from the sensor are not scored.
-    beam_weight: exponent of each point's likelihood (< 1: neighbouring points are
-        correlated). 0.3 makes the spread of one frame's likelihood about match the
-        scatter of its best pose on the simulated course (60 points: σθ ≈ 0.85° at 1 vs
-        1.4° measured).
-    surfaces_only: measure distances to the surface cells of occupied regions (occupied
-        cells next to non-occupied ones), not to their filled insides.
-    map_refresh_s: recompute the distance transform when the one in use is this old
-        (message time); the map changes a little with every frame.
-    min_map_cells: score frames only once the map has at least this many occupied cells.
     min_points: score a frame only when at least this many of its points land in mapped
-        cells (known to the grid) at the mean pose; only those points are scored.
+        cells (known to the grid); only those points are scored.
     scan_every_m, scan_every_rad: score a frame only once the odometry has moved this far
         or turned this much since the last scored frame (as AMCL's update_min_d/a):
         consecutive frames repeat the same evidence; 0, 0: every frame.
@@ -173,13 +160,6 @@ class ParticleFilterConfig(KnownMapConfig):
     outlier_prob, outlier_range_m: the robust landmark likelihood (module docstring): the
         share ε of observations that are outliers, uniform over outlier_range_m of range
         and all bearings; 0 = the plain Gaussian.
-    smoother: "rts" | "ancestry" | "none": what `trajectory()` is (module docstring);
-        path_snapshot_s: the ancestry's sampling interval.
-    proposal: "motion" or "scan" (module docstring); for "scan", lattice: its search
-        lattices and prior floor (slam.scan_proposal.ProposalLattice).
-    Frames are scored against the attached map, the one map that the pipeline builds at
-    this filter's estimates (Monte Carlo localization); slam.grid_rbpf (`grid-rbpf`) is
-    the Rao-Blackwellized filter with a map per particle.
     """
 
     initial_sigma: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -189,16 +169,10 @@ class ParticleFilterConfig(KnownMapConfig):
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     use_landmarks: bool = True
-    use_scans: bool = False
-    sigma_hit_m: float = 0.1
     z_hit: float = 0.9
     z_rand: float = 0.1
     max_beams: int = 60
     max_range_m: float = 3.5
-    beam_weight: float = 0.3
-    surfaces_only: bool = True
-    map_refresh_s: float = 0.5
-    min_map_cells: int = 20
     min_points: int = 10
     scan_every_m: float = 0.2
     scan_every_rad: float = 0.2
@@ -206,14 +180,8 @@ class ParticleFilterConfig(KnownMapConfig):
     resample_threshold: float = 0.5
     outlier_prob: float = 0.01
     outlier_range_m: float = 10.0
-    smoother: PathSmoother = PathSmoother.RTS
-    path_snapshot_s: float = 0.1
-
-    proposal: Proposal = Proposal.MOTION
-    lattice: ProposalLattice = field(default_factory=ProposalLattice)
 
     def __post_init__(self) -> None:
-        coerce(self, smoother=PathSmoother, proposal=Proposal)
         if not 0.0 <= self.outlier_prob < 1.0 or self.outlier_range_m <= 0:
             raise ValueError("outlier_prob must be in [0, 1) and outlier_range_m > 0")
         if self.n_particles < 1:
@@ -222,12 +190,60 @@ class ParticleFilterConfig(KnownMapConfig):
             raise ValueError(f"initial_sigma must be three values >= 0, got {self.initial_sigma}")
         if not 0.0 <= self.resample_threshold <= 1.0:
             raise ValueError(f"resample_threshold must be in [0, 1], got {self.resample_threshold}")
-        if self.sigma_hit_m <= 0 or self.max_range_m <= 0 or self.max_beams < 1:
-            raise ValueError("sigma_hit_m and max_range_m must be > 0, max_beams >= 1")
+        if self.max_range_m <= 0 or self.max_beams < 1:
+            raise ValueError("max_range_m must be > 0, max_beams >= 1")
         if self.z_hit < 0 or self.z_rand <= 0:
             raise ValueError("need z_hit >= 0 and z_rand > 0 (the field's floor)")
-        if self.map_refresh_s < 0 or self.scan_every_m < 0 or self.scan_every_rad < 0:
-            raise ValueError("map_refresh_s, scan_every_m and scan_every_rad must be >= 0")
+        if self.scan_every_m < 0 or self.scan_every_rad < 0:
+            raise ValueError("scan_every_m and scan_every_rad must be >= 0")
+
+
+@dataclass(frozen=True)
+class ParticleFilterConfig(ParticleSettings):
+    """Particle filter (Monte Carlo localization) settings: ParticleSettings, and
+
+    use_scans: weight by depth frames / laser scans against the attached occupancy map
+        (`ParticleFilter.attach_map`). Off by default: against the shared map, which is
+        built at this filter's own estimates, each frame's small matching error becomes
+        part of the map the next frame is matched to, and on the simulated course that
+        drifts more than the odometry does (see tests/slam/test_particle_filter.py).
+    sigma_hit_m: σ of the likelihood field's Gaussian around occupied cells.
+    beam_weight: exponent of each point's likelihood (< 1: neighbouring points are
+        correlated). 0.3 makes the spread of one frame's likelihood about match the
+        scatter of its best pose on the simulated course (60 points: σθ ≈ 0.85° at 1 vs
+        1.4° measured).
+    surfaces_only: measure distances to the surface cells of occupied regions (occupied
+        cells next to non-occupied ones), not to their filled insides.
+    map_refresh_s: recompute the distance transform when the one in use is this old
+        (message time); the map changes a little with every frame.
+    min_map_cells: score frames only once the map has at least this many occupied cells.
+    smoother: "rts" | "ancestry" | "none": what `trajectory()` is (module docstring);
+        path_snapshot_s: the ancestry's sampling interval.
+    proposal: "motion" or "scan" (module docstring); for "scan", lattice: its search
+        lattices and prior floor (slam.scan_proposal.ProposalLattice).
+    Frames are scored against the attached map, the one map that the pipeline builds at
+    this filter's estimates (Monte Carlo localization); slam.grid_rbpf (`grid-rbpf`) is
+    the Rao-Blackwellized filter with a map per particle.
+    """
+
+    use_scans: bool = False
+    sigma_hit_m: float = 0.1
+    beam_weight: float = 0.3
+    surfaces_only: bool = True
+    map_refresh_s: float = 0.5
+    min_map_cells: int = 20
+    smoother: PathSmoother = PathSmoother.RTS
+    path_snapshot_s: float = 0.1
+    proposal: Proposal = Proposal.MOTION
+    lattice: ProposalLattice = field(default_factory=ProposalLattice)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        coerce(self, smoother=PathSmoother, proposal=Proposal)
+        if self.sigma_hit_m <= 0:
+            raise ValueError(f"sigma_hit_m must be > 0, got {self.sigma_hit_m}")
+        if self.map_refresh_s < 0:
+            raise ValueError(f"map_refresh_s must be >= 0, got {self.map_refresh_s}")
 
 
 def systematic_resample(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
