@@ -249,16 +249,7 @@ def trajectory_figure(
     """trajectory.png: the estimated path against the true one among the true obstacle
     outlines, with the simulated collisions."""
     truth = gt.poses[:, :2] if gt is not None else None
-    box = bounds([], [est.poses[:, :2], truth], outlines)
-    fig = Figure(figsize=_figsize(box, 5.5), layout="constrained")
-    ax = fig.add_subplot()
-    handles = []
-    if outlines:
-        draw_outlines(ax, outlines, OUTLINE_COLOUR_PLAIN)
-        handles.append(outline_handle(OUTLINE_COLOUR_PLAIN))
-    if truth is not None:
-        draw_path(ax, truth, TRUTH_COLOUR, lw=1.3)
-        handles.append(line_handle(TRUTH_COLOUR, "true path"))
+    fig, ax, handles, box = _path_axes([est.poses[:, :2]], truth, outlines, (1.3, None))
     draw_path(ax, est.poses[:, :2], ESTIMATE_COLOUR)
     handles.append(line_handle(ESTIMATE_COLOUR, f"estimated path ({localizer})"))
     if collisions:
@@ -273,10 +264,39 @@ def trajectory_figure(
                 label=f"collisions ({len(collisions)})",
             )
         )
+    title = f"{log_name(log)}: {localizer} path against the true path"
+    return _finish_path_axes(fig, ax, handles, box, title)
+
+
+def _path_axes(
+    paths: Sequence[np.ndarray],
+    truth: np.ndarray | None,
+    outlines: Sequence[np.ndarray],
+    truth_lw: tuple[float, float | None],
+) -> tuple[Figure, Axes, list, tuple[float, float, float, float]]:
+    """A path figure's axes sized to the paths, the truth and the outlines, with the
+    outlines and the true path (line width, legend line width) drawn: (fig, ax, legend
+    handles, extent)."""
+    box = bounds([], [*paths, truth], outlines)
+    fig = Figure(figsize=_figsize(box, 5.5), layout="constrained")
+    ax = fig.add_subplot()
+    handles = []
+    if outlines:
+        draw_outlines(ax, outlines, OUTLINE_COLOUR_PLAIN)
+        handles.append(outline_handle(OUTLINE_COLOUR_PLAIN))
+    if truth is not None:
+        draw_path(ax, truth, TRUTH_COLOUR, lw=truth_lw[0])
+        legend_lw = {} if truth_lw[1] is None else {"lw": truth_lw[1]}
+        handles.append(line_handle(TRUTH_COLOUR, "true path", **legend_lw))
+    return fig, ax, handles, box
+
+
+def _finish_path_axes(fig: Figure, ax: Axes, handles: list, box, title: str) -> Figure:
+    """The extent, metric axes, the title and the legend right of the axes."""
     ax.set_xlim(box[0], box[1])
     ax.set_ylim(box[2], box[3])
     metric_axes(ax)
-    ax.set_title(f"{log_name(log)}: {localizer} path against the true path", fontsize=9)
+    ax.set_title(title, fontsize=9)
     legend_right(ax, handles)
     return fig
 
@@ -373,27 +393,13 @@ def paths_figure(
 ) -> Figure:
     """compare's `<log>_trajectories.png`: each localizer's path (N×2, keyed by its name)
     on one log, the true path and the true obstacle outlines when known."""
-    box = bounds([], [*paths.values(), truth], outlines)
-    fig = Figure(figsize=_figsize(box, 5.5), layout="constrained")
-    ax = fig.add_subplot()
-    handles = []
-    if outlines:
-        draw_outlines(ax, outlines, OUTLINE_COLOUR_PLAIN)
-        handles.append(outline_handle(OUTLINE_COLOUR_PLAIN))
-    if truth is not None:
-        draw_path(ax, truth, TRUTH_COLOUR, lw=1.5)
-        handles.append(line_handle(TRUTH_COLOUR, "true path", lw=1.5))
+    fig, ax, handles, box = _path_axes(list(paths.values()), truth, outlines, (1.5, 1.5))
     for k, (label, xy) in enumerate(paths.items()):
         colour = LOCALIZER_COLOURS[k % len(LOCALIZER_COLOURS)]
         draw_path(ax, xy, colour, lw=0.9)
         handles.append(line_handle(colour, label))
-    ax.set_xlim(box[0], box[1])
-    ax.set_ylim(box[2], box[3])
-    metric_axes(ax)
     against = " against the true path" if truth is not None else ""
-    ax.set_title(f"{name}: estimated paths{against}", fontsize=9)
-    legend_right(ax, handles)
-    return fig
+    return _finish_path_axes(fig, ax, handles, box, f"{name}: estimated paths{against}")
 
 
 # -- the slip push --------------------------------------------------------------------
