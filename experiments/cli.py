@@ -203,45 +203,53 @@ def import_(
     )
 
 
+# the options of `replay` that take more than a line
+_ReplayMapModelOpt = Annotated[
+    str, typer.Option(help="log-odds, or view-count (the thesis's >50 % of views)")
+]
+_ReplayFormatOpt = Annotated[
+    str | None, typer.Option(help="read LOG as a dataset: mrclam, carmen, victoria-park")
+]
+_ReplayControllerOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="recompute the brake commands with this controller on the replay's pose "
+        "and map, and compare them with the logged ones"
+    ),
+]
+_ReplayFoxgloveOpt = Annotated[
+    bool,
+    typer.Option(
+        "--foxglove",
+        help="serve the replay to Foxglove (WebSocket), paced to real time; the final "
+        "state stays up until Ctrl-C (or --linger S)",
+    ),
+]
+_ReplayLingerOpt = Annotated[
+    float | None, typer.Option(help="--foxglove: serve this long after the end [s]")
+]
+
+
 @app.command()
 @friendly
 def replay(
     log: Annotated[Path, typer.Argument(help="trial log (.mcap), or a dataset with --format")],
     localizer: Annotated[str, typer.Option(help="localizer to run")] = "dead-reckoning",
     out: Annotated[Path, typer.Option(help="output folder")] = Path("out/replay"),
-    map_model: Annotated[
-        str, typer.Option(help="log-odds, or view-count (the thesis's >50 % of views)")
-    ] = "log-odds",
+    map_model: _ReplayMapModelOpt = "log-odds",
     resolution: Annotated[float, typer.Option(help="map cell size [m]")] = 0.05,
-    format: Annotated[
-        str | None, typer.Option(help="read LOG as a dataset: mrclam, carmen, victoria-park")
-    ] = None,
+    format: _ReplayFormatOpt = None,
     robot: RobotOpt = None,
     relations: RelationsOpt = None,
     time_offset: TimeOffsetOpt = None,
-    controller: Annotated[
-        str | None,
-        typer.Option(
-            help="recompute the brake commands with this controller on the replay's pose "
-            "and map, and compare them with the logged ones"
-        ),
-    ] = None,
+    controller: _ReplayControllerOpt = None,
     set_: SetOpt = None,
     dataset_option: DatasetOpt = None,
-    foxglove: Annotated[
-        bool,
-        typer.Option(
-            "--foxglove",
-            help="serve the replay to Foxglove (WebSocket), paced to real time; the final "
-            "state stays up until Ctrl-C (or --linger S)",
-        ),
-    ] = False,
+    foxglove: _ReplayFoxgloveOpt = False,
     foxglove_port: Annotated[int, typer.Option(help="--foxglove: port (0: any free)")] = 8765,
     speed: Annotated[float, typer.Option(help="--foxglove: replay speed, × real time")] = 1.0,
     fast: Annotated[bool, typer.Option("--fast", help="--foxglove: do not pace")] = False,
-    linger: Annotated[
-        float | None, typer.Option(help="--foxglove: serve this long after the end [s]")
-    ] = None,
+    linger: _ReplayLingerOpt = None,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""

@@ -113,74 +113,87 @@ def image_files(paths: list[Path]) -> list[Path]:
     return out
 
 
+# the options of `live` that take more than a line
+_SerialOpt = Annotated[str | None, typer.Option(help="the board's serial port, e.g. /dev/ttyACM0")]
+_DepthOpt = Annotated[
+    str,
+    typer.Option(
+        help="kinect, kinect:INDEX, realsense, fakenect:DIR or none; all: walkerslam list"
+    ),
+]
+_CameraOpt = Annotated[
+    str,
+    typer.Option(
+        help="tag camera: a device INDEX, a video file or image folder, kinect, or none; "
+        "all: walkerslam list"
+    ),
+]
+_CameraCalibrationOpt = Annotated[
+    Path | None,
+    typer.Option(help="the tag camera's calibration YAML (walkerslam calibrate-camera)"),
+]
+_CameraFpsOpt = Annotated[
+    float | None,
+    typer.Option(help="pace a tag-camera video file or image folder to this rate"),
+]
+_CalibrationOpt = Annotated[
+    Path | None, typer.Option(help="walker calibration JSON (default: the thesis walker)")
+]
+_RecordOpt = Annotated[
+    Path | None, typer.Option(help="record every stream and command to this .mcap")
+]
+_SetOpt = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--set",
+        help="NAME.FIELD=VALUE: a field of the localizer's or controller's config (repeatable)",
+    ),
+]
+_SimOpt = Annotated[
+    bool,
+    typer.Option(
+        "--sim",
+        help="the simulated walker in real time: board emulator on a pty, simulated cameras",
+    ),
+]
+_FirmwareOpt = Annotated[
+    bool, typer.Option("--firmware", help="--sim: the compiled firmware in simavr")
+]
+_FoxgloveOpt = Annotated[
+    bool, typer.Option("--foxglove", help="serve the streams to Foxglove (WebSocket)")
+]
+_TriggerOpt = Annotated[
+    str,
+    typer.Option(
+        help="frame: a command right after each depth frame (at --rate while "
+        "frames stall); timer: commands at --rate only"
+    ),
+]
+
+
 def live(
     localizer: Annotated[str, typer.Option(help="localizer to run")] = "dead-reckoning",
     controller: Annotated[str, typer.Option(help="braking controller")] = "open-loop",
-    serial: Annotated[
-        str | None, typer.Option(help="the board's serial port, e.g. /dev/ttyACM0")
-    ] = None,
-    depth: Annotated[
-        str,
-        typer.Option(
-            help="kinect, kinect:INDEX, realsense, fakenect:DIR or none; all: walkerslam list"
-        ),
-    ] = "none",
-    camera: Annotated[
-        str,
-        typer.Option(
-            help="tag camera: a device INDEX, a video file or image folder, kinect, or none; "
-            "all: walkerslam list"
-        ),
-    ] = "none",
-    camera_calibration: Annotated[
-        Path | None,
-        typer.Option(help="the tag camera's calibration YAML (walkerslam calibrate-camera)"),
-    ] = None,
-    camera_fps: Annotated[
-        float | None,
-        typer.Option(help="pace a tag-camera video file or image folder to this rate"),
-    ] = None,
-    calibration: Annotated[
-        Path | None, typer.Option(help="walker calibration JSON (default: the thesis walker)")
-    ] = None,
-    record: Annotated[
-        Path | None, typer.Option(help="record every stream and command to this .mcap")
-    ] = None,
+    serial: _SerialOpt = None,
+    depth: _DepthOpt = "none",
+    camera: _CameraOpt = "none",
+    camera_calibration: _CameraCalibrationOpt = None,
+    camera_fps: _CameraFpsOpt = None,
+    calibration: _CalibrationOpt = None,
+    record: _RecordOpt = None,
     duration: Annotated[float | None, typer.Option(help="stop after this many s")] = None,
-    set_: Annotated[
-        list[str] | None,
-        typer.Option(
-            "--set",
-            help="NAME.FIELD=VALUE: a field of the localizer's or controller's config (repeatable)",
-        ),
-    ] = None,
-    sim: Annotated[
-        bool,
-        typer.Option(
-            "--sim",
-            help="the simulated walker in real time: board emulator on a pty, simulated cameras",
-        ),
-    ] = False,
-    firmware: Annotated[
-        bool, typer.Option("--firmware", help="--sim: the compiled firmware in simavr")
-    ] = False,
+    set_: _SetOpt = None,
+    sim: _SimOpt = False,
+    firmware: _FirmwareOpt = False,
     course: Annotated[str, typer.Option(help="--sim: course name or JSON")] = "thesis-course",
     seed: Annotated[int, typer.Option(help="--sim: random seed")] = 0,
     surface: Annotated[str, typer.Option(help="--sim: clean, dusty or S")] = "dusty",
     depth_size: Annotated[str, typer.Option(help="--sim: depth image WxH")] = "160x120",
     depth_rate: Annotated[int, typer.Option(help="--sim: depth frames per second")] = 10,
     sim_duration: Annotated[float, typer.Option(help="--sim: longest simulated trial [s]")] = 300.0,
-    foxglove: Annotated[
-        bool, typer.Option("--foxglove", help="serve the streams to Foxglove (WebSocket)")
-    ] = False,
+    foxglove: _FoxgloveOpt = False,
     foxglove_port: Annotated[int, typer.Option(help="--foxglove: port (0: any)")] = 8765,
-    trigger: Annotated[
-        str,
-        typer.Option(
-            help="frame: a command right after each depth frame (at --rate while "
-            "frames stall); timer: commands at --rate only"
-        ),
-    ] = "frame",
+    trigger: _TriggerOpt = "frame",
     rate: Annotated[float, typer.Option(help="the controller's loop rate [Hz]")] = 10.0,
 ) -> None:
     """Run a localizer and a braking controller live on the walker (or, with --sim, on
