@@ -201,24 +201,16 @@ def live(
     releases the brakes."""
     from dataclasses import replace
 
-    from control.base import CONTROLLERS
-    from experiments.config import parse_sets
     from experiments.live import LIVE_LOOP, LiveError, LiveOptions, LiveRun, SimWalker
-    from slam.base import LOCALIZERS
 
-    LOCALIZERS.spec(localizer)
-    CONTROLLERS.spec(controller)
-    if localizer == controller:
-        raise ConfigError("the localizer and the controller need different names")
-    sets = parse_sets(
-        set_ or [], {localizer: LOCALIZERS, controller: CONTROLLERS}, [localizer, controller]
-    )
+    sets = _live_sets(localizer, controller, set_ or [])
     if sim and (serial is not None or depth != "none" or camera != "none"):
         raise LiveError("--sim brings its own board and cameras: drop --serial/--depth/--camera")
     if firmware and not sim:
         raise LiveError("--firmware goes with --sim")
-    sim_walker = (
-        SimWalker(
+    sim_walker = None
+    if sim:
+        sim_walker = SimWalker(
             course=course,
             seed=seed,
             surface=surface,
@@ -227,9 +219,6 @@ def live(
             depth_rate_hz=depth_rate,
             firmware=firmware,
         )
-        if sim
-        else None
-    )
     opts = LiveOptions(
         localizer=localizer,
         controller=controller,
@@ -252,6 +241,22 @@ def live(
         with _stop_on_signals(run.stop):
             res = run.run()
     _print_live_result(res)
+
+
+def _live_sets(localizer: str, controller: str, sets: list[str]) -> dict[str, dict]:
+    """The --set overrides of the localizer and the controller, checked before any device
+    opens (unknown names, a shared name, a field either config lacks)."""
+    from control.base import CONTROLLERS
+    from experiments.config import parse_sets
+    from slam.base import LOCALIZERS
+
+    LOCALIZERS.spec(localizer)
+    CONTROLLERS.spec(controller)
+    if localizer == controller:
+        raise ConfigError("the localizer and the controller need different names")
+    return parse_sets(
+        sets, {localizer: LOCALIZERS, controller: CONTROLLERS}, [localizer, controller]
+    )
 
 
 def _print_live_result(res) -> None:
