@@ -42,10 +42,13 @@ from hardware.sim.user import ConstantPush, RouteFollower, UserParams, UserProfi
 from hardware.sim.world import COLLISION_BAND_M, World
 from hardware.source import PROPOSED_SETTINGS
 
-# Walker parts in the walker frame (x forward, y left; rear-axle origin): the frame is
-# 0.56 m wide and 0.74 m long; the rear wheels stick out 6.5 cm beyond it on each side
-# (0.69 m overall), which is why rear-wheel collisions dominate thesis Table 6.3.
-FRAME_POLYGON = np.array([[-0.10, -0.28], [0.64, -0.28], [0.64, 0.28], [-0.10, 0.28]])
+# Walker parts in the walker frame (x forward, y left; rear-axle origin), from thesis
+# Table 3.1 (a Dolomite Legacy rollator): 0.745 m long; the frame is 0.56 m wide at the
+# rear struts and narrows to 0.50 m at the front castors (front wheel track 0.45 m plus
+# the castors); the rear wheels (204 mm, contact track 0.68 m) stick out 6.5 cm beyond
+# the frame on each side (0.69 m overall), which the thesis blames for the rear-wheel
+# collisions that dominate its Table 6.3.
+FRAME_POLYGON = np.array([[-0.10, -0.28], [0.64, -0.25], [0.64, 0.25], [-0.10, 0.28]])
 LEFT_WHEEL_POLYGON = np.array([[-0.102, 0.28], [0.102, 0.28], [0.102, 0.345], [-0.102, 0.345]])
 RIGHT_WHEEL_POLYGON = LEFT_WHEEL_POLYGON * np.array([1.0, -1.0])
 WALKER_PARTS = (
@@ -53,8 +56,26 @@ WALKER_PARTS = (
     ("left-wheel", LEFT_WHEEL_POLYGON[::-1]),
     ("right-wheel", RIGHT_WHEEL_POLYGON),
 )
-# A contact with an obstacle counts as a new collision only after this long clear of it.
+# The heights each part occupies: the frame (tubing, castors, the laptop platform, the
+# handles at 0.91 m) spans the whole band; a rear wheel reaches only its own diameter, so
+# it passes under a table top or a chair seat and catches on their legs.
+PART_BANDS_M = {
+    "frame": COLLISION_BAND_M,
+    "left-wheel": (0.0, 0.21),
+    "right-wheel": (0.0, 0.21),
+}
+# A contact with an obstacle starts a new contact episode only after this long clear of it.
 COLLISION_REARM_S = 3.0
+# A collision, as the thesis counted them (§6.4), is "an event in which contact with the
+# environment significantly altered or impeded the movement of the user"; "minor scrapes
+# against obstacles were not counted". A contact episode becomes a collision when the
+# contact removes at least SIGNIFICANT_BUMP_MPS of its point's velocity into the obstacle
+# in one step (a bump: the walker is jolted or deflected), or when it holds the walker
+# below HELD_SPEED_MPS for HELD_S in all (the motion is impeded). A contact that does
+# neither (a glancing scrape, sliding along an edge) is a scrape (`Simulator.scrapes`).
+SIGNIFICANT_BUMP_MPS = 0.1
+HELD_SPEED_MPS = 0.05
+HELD_S = 0.5
 # Farthest point of the walker from the rear-axle centre: bounds how far any part of it
 # can move for a given (v, φ̇).
 WALKER_REACH_M = float(max(np.hypot(*p.T).max() for _, p in WALKER_PARTS))
@@ -122,6 +143,15 @@ class SimConfig:
         )
 
 
+@dataclass
+class _ContactEpisode:
+    """Contact with one obstacle since it began: whether it became a collision yet and
+    how long it has held the walker."""
+
+    significant: bool = False
+    held_s: float = 0.0
+
+
 class Simulator:
     """A walker in a world, pushed by a user; see the module docstring."""
 
@@ -131,8 +161,10 @@ class Simulator:
         self.world = world
         self.config = config
         self.calibration = config.calibration()
-        seeds = np.random.SeedSequence(config.seed).spawn(4)
-        rng_slip, rng_user, rng_depth, rng_tags = (np.random.default_rng(s) for s in seeds)
+        seeds = np.random.SeedSequence(config.seed).spawn(5)
+        rng_slip, rng_user, rng_depth, rng_tags, rng_vision = (
+            np.random.default_rng(s) for s in seeds
+        )
         w = config.walker
         x0, y0, th0 = world.start_pose
         self.state = WalkerState(x=x0, y=y0, phi=th0)
@@ -145,7 +177,9 @@ class Simulator:
             if config.user_profile is not None:
                 params = config.user_profile.apply(params)
                 route = config.user_profile.walk_route(route)
-            user = RouteFollower(route, self.state, w, params, rng_user)
+            user = RouteFollower(
+                route, self.state, w, params, rng_user, world, rng_vision, world.route
+            )
         self.user = user
         self.depth_camera = SimDepthCamera(world, self.calibration, config.depth, rng_depth)
         self.tag_camera = SimTagCamera(world, self.calibration, config.tags, rng_tags)
@@ -157,6 +191,8 @@ class Simulator:
             for name in ("encoder", "depth", "tag", "groundtruth")
         }
         self._last_contact: dict[str, float] = {}
+        self._episodes: dict[str, _ContactEpisode] = {}
+        self.scrapes = 0  # contact episodes that never became collisions
         # Distance the walker may still move before it could touch anything.
         self._free_travel_m = 0.0
         self.last_slip = (0.0, 0.0)
@@ -232,6 +268,13 @@ class Simulator:
         off = np.array([self.state.x, self.state.y])
         return [(name, poly @ rot.T + off) for name, poly in WALKER_PARTS]
 
+    def _parts_by_band(self) -> dict[tuple[float, float], list[tuple[str, np.ndarray]]]:
+        """The walker's parts in the world, grouped by the height band they occupy."""
+        out: dict[tuple[float, float], list[tuple[str, np.ndarray]]] = {}
+        for name, poly in self._parts_in_world():
+            out.setdefault(PART_BANDS_M[name], []).append((name, poly))
+        return out
+
     def _collide(self, out: list[Message]) -> None:
         s = self.state
         # Broad phase: no part can have moved farther than |v|dt + |φ̇|dt·reach, so while
@@ -240,17 +283,21 @@ class Simulator:
         if self._free_travel_m > 0.0:
             self.user.touching(s, None, self.dt)
             return
-        parts = self._parts_in_world()
-        contacts = self.world.contacts(parts)
+        bands = self._parts_by_band()
+        contacts = [c for band, parts in bands.items() for c in self.world.contacts(parts, *band)]
         if not contacts:
             self.user.touching(s, None, self.dt)
-            polys = self.world.polygon_set(*COLLISION_BAND_M)
-            clearance, _ = polys.clearances(np.array([p for _, p in parts]), CLEARANCE_HORIZON_M)
-            self._free_travel_m = min(float(clearance.min()), CLEARANCE_HORIZON_M)
+            clearance = CLEARANCE_HORIZON_M
+            for band, parts in bands.items():
+                polys = self.world.polygon_set(*band)
+                near, _ = polys.clearances(np.array([p for _, p in parts]), CLEARANCE_HORIZON_M)
+                clearance = min(clearance, float(near.min()))
+            self._free_travel_m = clearance
             return
         moved = np.zeros(2)
         contacts = sorted(contacts, key=lambda c: -c.depth)
         self.user.touching(s, np.asarray(contacts[0].point, float), self.dt)
+        held: set[str] = set()
         for c in contacts:
             # Push the walker out of the obstacle (less what earlier pushes already did
             # along this normal: two parts touching one wall are pushed once), then remove
@@ -262,17 +309,35 @@ class Simulator:
             moved += push * normal
             s.x += push * normal[0]
             s.y += push * normal[1]
-            self._contact_impulse(np.asarray(c.point, float), np.asarray(c.normal, float))
-            last = self._last_contact.get(c.obstacle, -math.inf)
-            self._last_contact[c.obstacle] = self.t
-            if self.t - last > COLLISION_REARM_S:
-                kind = self._kind(c.part, c.normal)
+            point = np.asarray(c.point, float)
+            bump = self._contact_impulse(point, normal)
+            episode = self._episode(c.obstacle, point)
+            if c.obstacle not in held and abs(s.v) < HELD_SPEED_MPS:
+                held.add(c.obstacle)
+                episode.held_s += self.dt
+            if not episode.significant and (
+                bump >= SIGNIFICANT_BUMP_MPS or episode.held_s >= HELD_S
+            ):
+                episode.significant = True
+                self.scrapes -= 1
                 out.append(
-                    Collision(self.t, kind, c.obstacle, float(c.point[0]), float(c.point[1]))
+                    Collision(self.t, self._kind(c.part, c.normal), c.obstacle, *point.tolist())
                 )
-                self.user.on_collision(s, np.asarray(c.point, float))
+                self.user.on_collision(s, point)
 
-    def _contact_impulse(self, point: np.ndarray, normal: np.ndarray) -> None:
+    def _episode(self, obstacle: str, point: np.ndarray) -> _ContactEpisode:
+        """The contact episode with `obstacle` this contact belongs to: a new one (felt by
+        the user as a scrape until it proves significant) after COLLISION_REARM_S clear."""
+        last = self._last_contact.get(obstacle, -math.inf)
+        self._last_contact[obstacle] = self.t
+        if self.t - last > COLLISION_REARM_S or obstacle not in self._episodes:
+            self._episodes[obstacle] = _ContactEpisode()
+            self.scrapes += 1
+            self.user.on_scrape(self.state, point)
+        return self._episodes[obstacle]
+
+    def _contact_impulse(self, point: np.ndarray, normal: np.ndarray) -> float:
+        """Remove the contact point's velocity into the obstacle; returns that speed."""
         s, w = self.state, self.config.walker
         heading = np.array([math.cos(s.phi), math.sin(s.phi)])
         r = point - np.array([s.x, s.y])
@@ -280,14 +345,15 @@ class Simulator:
         jac = np.array([heading @ normal, -r[1] * normal[0] + r[0] * normal[1]])
         approach = jac[0] * s.v + jac[1] * s.omega
         if approach >= 0.0:
-            return
+            return 0.0
         inv_mass = np.array([1.0 / w.mass_kg, 1.0 / w.yaw_inertia])
         denom = float(jac @ (inv_mass * jac))
         if denom <= 1e-12:
-            return
+            return 0.0
         impulse = -approach / denom
         s.v += impulse * inv_mass[0] * jac[0]
         s.omega += impulse * inv_mass[1] * jac[1]
+        return float(-approach)
 
     def _kind(self, part: str, normal: np.ndarray) -> str:
         if part.endswith("wheel"):

@@ -18,11 +18,13 @@ walking `World.route`.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from hardware.sim.dynamics import WalkerParams, WalkerState
+from hardware.sim.user_vision import GogglesVision, VisionParams, choose_offset, route_coordinates
+from hardware.sim.world import World
 
 
 @dataclass(frozen=True)
@@ -41,15 +43,26 @@ class UserParams:
     stuck_s: how long they push against something that does not give before stepping back;
     min_turn_speed_mps: they slow into a turn to no faster than they can steer it (80 % of
     the yaw rate their largest handle-force difference holds), but not below this.
+    vision: what they see through the goggles (`hardware.sim.user_vision`; None: nothing,
+    a blindfolded user who finds obstacles only by touch); visual_fix_s: while they see
+    furniture, their sense of where they are on the route is drawn to the truth with this
+    time constant (they recognise where they are by what they see); look_ahead_s: they
+    walk no faster than covers the free distance they see ahead in this time;
+    preview_m: they slow for a bend of the route this far before it;
+    gap_margin_m: the clearance from what they see either side that they keep, beyond
+    their corridor, when the way is wide enough (`user_vision.choose_offset`);
+    scrape_turn_rad_s / scrape_s: a contact
+    they feel but that does not stop them (a scrape) makes them steer away from it this
+    fast for this long.
     """
 
     speed_mps: float = 0.75
     lookahead_m: float = 0.9
     speed_gain: float = 40.0
     speed_integral_gain: float = 15.0
-    yaw_gain: float = 6.0
+    yaw_gain: float = 20.0
     max_push_n: float = 60.0
-    max_steer_n: float = 25.0
+    max_steer_n: float = 45.0
     heading_drift_rad_per_sqrt_m: float = 0.06
     heading_bias_rad_per_m: float = 0.0
     distance_scale_error: float = 0.0
@@ -59,6 +72,13 @@ class UserParams:
     backoff_turn_rad_s: float = 0.4
     stuck_s: float = 1.0
     min_turn_speed_mps: float = 0.2
+    vision: VisionParams | None = field(default_factory=VisionParams)
+    visual_fix_s: float = 3.0
+    look_ahead_s: float = 2.0
+    preview_m: float = 1.0
+    gap_margin_m: float = 0.3
+    scrape_turn_rad_s: float = 0.3
+    scrape_s: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -158,6 +178,8 @@ WANDER_HARMONICS = (1.0, 0.53, 0.29)
 ROUTE_TAPER_M = 1.0
 
 ROUTE_STEP_M = 0.02
+# Spacing of the route ahead against which the user judges what they see.
+ROUTE_PLAN_SPACING_M = 0.1
 SEARCH_BEHIND = round(0.5 / ROUTE_STEP_M)
 SEARCH_AHEAD = round(2.0 / ROUTE_STEP_M)
 
@@ -175,12 +197,16 @@ class ConstantPush:
     def on_collision(self, state: WalkerState, point: np.ndarray) -> None:
         pass
 
+    def on_scrape(self, state: WalkerState, point: np.ndarray) -> None:
+        pass
+
     def touching(self, state: WalkerState, point: np.ndarray | None, dt: float) -> None:
         pass
 
 
 class RouteFollower:
-    """Pure pursuit along a route, on the user's own drifting sense of where they are."""
+    """A user who walks a route they know, on their own sense of where they are, looking
+    through vision-impairment goggles (see the module docstring)."""
 
     def __init__(
         self,
@@ -189,6 +215,9 @@ class RouteFollower:
         walker: WalkerParams,
         params: UserParams,
         rng: np.random.Generator,
+        world: World | None = None,
+        vision_rng: np.random.Generator | None = None,
+        course_route: np.ndarray | None = None,
     ) -> None:
         route = np.asarray(route, dtype=float)
         if route.ndim != 2 or route.shape[1] != 2 or len(route) < 2:
@@ -198,9 +227,18 @@ class RouteFollower:
         arclen = np.concatenate([[0.0], np.cumsum(seg)])
         self.length_m = float(arclen[-1])
         # The route resampled every ROUTE_STEP_M, so progress is an index into it.
-        s = np.arange(0.0, self.length_m + ROUTE_STEP_M, ROUTE_STEP_M)
-        self._dense = np.column_stack(
-            [np.interp(s, arclen, route[:, 0]), np.interp(s, arclen, route[:, 1])]
+        self._dense = _resample(route)
+        # The bends they slow for are the course's (a user's own sideways wander around
+        # it is no corner), at the same share of the way.
+        bends = _resample(np.asarray(course_route, float)) if course_route is not None else None
+        self._curvature = (
+            _route_curvature(self._dense)
+            if bends is None
+            else np.interp(
+                np.linspace(0.0, 1.0, len(self._dense)),
+                np.linspace(0.0, 1.0, len(bends)),
+                _route_curvature(bends),
+            )
         )
         self.walker = walker
         self.p = params
@@ -210,12 +248,28 @@ class RouteFollower:
         self.finished = False
         self._backoff_left_s = 0.0
         self._backoff_turn = 0.0
+        self._scrape_left_s = 0.0
+        self._scrape_turn = 0.0
         self._speed_error_integral = 0.0
         self._touching_s = 0.0
+        self._t = 0.0
+        self._offset = 0.0  # the offset across the route they walk at (+ = left)
+        self._free = math.inf  # free distance ahead of the frame, as they see it
+        self.vision = (
+            GogglesVision(world, params.vision, vision_rng or np.random.default_rng(0))
+            if world is not None and params.vision is not None
+            else None
+        )
 
     @property
     def progress_m(self) -> float:
         return self._progress * ROUTE_STEP_M
+
+    def _curvature_ahead(self) -> float:
+        """The sharpest bend of the route within preview_m ahead: they know the route and
+        slow before its corners, not in them."""
+        n = round(self.p.preview_m / ROUTE_STEP_M)
+        return float(self._curvature[self._progress : self._progress + n + 1].max())
 
     # -- belief -----------------------------------------------------------------------
     def _feel_motion(self, state: WalkerState, dt: float) -> None:
@@ -232,16 +286,32 @@ class RouteFollower:
         b[1] += ds * math.sin(th)
         b[2] += dphi
 
+    def _look(self, state: WalkerState, dt: float) -> None:
+        """Carry what was seen along with the walker's motion, glimpse when due, and
+        while furniture is in view draw the sense of position toward the truth."""
+        if self.vision is None:
+            return
+        self.vision.carry(state.v * dt, state.omega * dt)
+        if self.vision.step(self._t, (state.x, state.y, state.phi)):
+            self._plan()
+        if self.vision.sees_something():
+            gain = min(dt / self.p.visual_fix_s, 1.0)
+            truth = np.array([state.x, state.y, state.phi])
+            err = truth - self.belief
+            err[2] = math.remainder(err[2], 2.0 * math.pi)
+            self.belief += gain * err
+
     def on_collision(self, state: WalkerState, point: np.ndarray) -> None:
-        """Felt a contact at `point` (world): step back, swinging the front away from it."""
+        """Felt a collision at `point` (world): step back, swinging the front away from it."""
         self.belief[:] = (state.x, state.y, state.phi)
         self._backoff_left_s = self.p.backoff_s
-        lateral = -math.sin(state.phi) * (point[0] - state.x) + math.cos(state.phi) * (
-            point[1] - state.y
-        )
-        # Backing up with φ̇ < 0 swings the front to the right: away from a contact on the left.
-        self._backoff_turn = -math.copysign(self.p.backoff_turn_rad_s, lateral)
+        self._backoff_turn = -math.copysign(self.p.backoff_turn_rad_s, _lateral(state, point))
         self._touching_s = 0.0
+
+    def on_scrape(self, state: WalkerState, point: np.ndarray) -> None:
+        """Felt a contact that does not stop them at `point`: steer away from it a while."""
+        self._scrape_left_s = self.p.scrape_s
+        self._scrape_turn = -math.copysign(self.p.scrape_turn_rad_s, _lateral(state, point))
 
     def touching(self, state: WalkerState, point: np.ndarray | None, dt: float) -> None:
         """Contact at `point` this step (None: no contact). Pushing against something that
@@ -262,10 +332,10 @@ class RouteFollower:
         d2 = (window[:, 0] - self.belief[0]) ** 2 + (window[:, 1] - self.belief[1]) ** 2
         self._progress = max(self._progress, lo + int(np.argmin(d2)))
 
-    # -- forces -----------------------------------------------------------------------
-    def forces(self, state: WalkerState, dt: float) -> tuple[float, float]:
-        self._feel_motion(state, dt)
-        self._update_progress()
+    def _route_aim(self) -> tuple[np.ndarray, float]:
+        """The pursuit point (the route point lookahead_m on, moved across the route by
+        the chosen offset) in the walker frame as the user believes it, and the route
+        length left."""
         remaining = self.length_m - self.progress_m
         end = self.route[-1]
         if (
@@ -273,28 +343,83 @@ class RouteFollower:
             and math.dist(self.belief[:2], end) < self.p.finish_radius_m
         ):
             self.finished = True
-        ahead = self._progress + round(self.p.lookahead_m / ROUTE_STEP_M)
-        target = self._dense[min(ahead, len(self._dense) - 1)]
-        bearing = math.atan2(target[1] - self.belief[1], target[0] - self.belief[0])
-        err = math.remainder(bearing - self.belief[2], 2.0 * math.pi)
+        i = min(self._progress + round(self.p.lookahead_m / ROUTE_STEP_M), len(self._dense) - 1)
+        point = self._dense[i]
+        if self._offset:
+            j = min(i + 1, len(self._dense) - 1)
+            tangent = self._dense[j] - self._dense[max(j - 1, 0)]
+            tangent = tangent / max(float(np.hypot(*tangent)), 1e-12)
+            point = point + self._offset * np.array([-tangent[1], tangent[0]])
+        return self._to_walker(point[None, :])[0], remaining
 
+    def _to_walker(self, xy: np.ndarray) -> np.ndarray:
+        """World points in the walker frame as the user believes it."""
+        c, s = math.cos(self.belief[2]), math.sin(self.belief[2])
+        rel = xy - self.belief[:2]
+        return np.column_stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]])
+
+    def _plan(self) -> None:
+        """After a glimpse: the offset across the route to walk at and the free distance
+        ahead (`user_vision.choose_offset` on what they see ahead of the frame's middle,
+        against the route of the next nose + plan metres as they believe it)."""
+        vp = self.p.vision
+        assert vp is not None and self.vision is not None
+        pts = self.vision.points
+        pts = pts[pts[:, 0] > 0.5 * vp.nose_m]
+        step = round(ROUTE_PLAN_SPACING_M / ROUTE_STEP_M)
+        n = round((vp.nose_m + vp.plan_m) / ROUTE_STEP_M)
+        ahead = self._dense[self._progress : self._progress + n + 1 : step]
+        if len(pts) == 0 or len(ahead) < 2:
+            self._offset, self._free = 0.0, math.inf
+            return
+        along, across = route_coordinates(pts, self._to_walker(ahead), ROUTE_PLAN_SPACING_M)
+        chosen, first = choose_offset(along, across, vp.corridor_half_width_m, self.p.gap_margin_m)
+        self._offset = chosen
+        self._free = max(first - vp.nose_m, 0.0)
+
+    # -- forces -----------------------------------------------------------------------
+    def forces(self, state: WalkerState, dt: float) -> tuple[float, float]:
+        self._t += dt
+        self._feel_motion(state, dt)
+        self._look(state, dt)
+        self._update_progress()
+        target, remaining = self._route_aim()
+        err = math.atan2(target[1], target[0])
+        v_des, omega_des = self._desired(state, err, remaining, self._free, dt)
+        return self._handle_forces(state, v_des, omega_des, dt)
+
+    def _desired(
+        self, state: WalkerState, err: float, remaining: float, free: float, dt: float
+    ) -> tuple[float, float]:
+        """Desired forward speed and yaw rate toward the chosen direction `err`."""
         v_des = self.p.speed_mps * max(0.3, math.cos(err)) * min(1.0, remaining / 0.8 + 0.2)
         # Slow into a turn: no faster than the turn they can steer (pure pursuit needs
-        # ω = 2 v sin(err) / lookahead; their largest handle-force difference holds
-        # ω_max against the walker's rotational damping).
+        # ω = 2 v sin(err) / lookahead, the route's bends ahead ω = v κ; their largest
+        # handle-force difference holds ω_max against the walker's rotational damping).
         w = self.walker
         omega_max = self.p.max_steer_n * w.alpha * w.half_track_m / w.yaw_damping
-        turn = 2.0 * abs(math.sin(err)) / self.p.lookahead_m
+        turn = max(2.0 * abs(math.sin(err)) / self.p.lookahead_m, self._curvature_ahead())
         if turn > 0.0:
             v_des = min(v_des, max(0.8 * omega_max / turn, self.p.min_turn_speed_mps))
+        # No faster than covers the free distance they see in look_ahead_s.
+        v_des = min(v_des, max(free / self.p.look_ahead_s, self.p.min_turn_speed_mps))
         v_ref = max(abs(state.v), 0.3)
         omega_des = 2.0 * v_ref * math.sin(err) / self.p.lookahead_m
+        if self._scrape_left_s > 0.0:
+            self._scrape_left_s -= dt
+            omega_des += self._scrape_turn
         if self.finished:
             v_des = 0.0
         elif self._backoff_left_s > 0.0:
             self._backoff_left_s -= dt
             v_des, omega_des = -self.p.backoff_speed_mps, self._backoff_turn
+        return v_des, omega_des
 
+    def _handle_forces(
+        self, state: WalkerState, v_des: float, omega_des: float, dt: float
+    ) -> tuple[float, float]:
+        """Handle forces that push toward (v_des, ω_des): a PI speed loop, a P yaw loop."""
+        w = self.walker
         if self.finished or self._backoff_left_s > 0.0:
             self._speed_error_integral = 0.0
         else:
@@ -313,3 +438,27 @@ class RouteFollower:
         diff = yaw_torque / (w.alpha * w.half_track_m)
         diff = min(max(diff, -self.p.max_steer_n), self.p.max_steer_n)
         return 0.5 * (total - diff), 0.5 * (total + diff)
+
+
+def _resample(route: np.ndarray) -> np.ndarray:
+    """`route` resampled every ROUTE_STEP_M along its length."""
+    seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
+    arclen = np.concatenate([[0.0], np.cumsum(seg)])
+    s = np.arange(0.0, arclen[-1] + ROUTE_STEP_M, ROUTE_STEP_M)
+    return np.column_stack([np.interp(s, arclen, route[:, 0]), np.interp(s, arclen, route[:, 1])])
+
+
+def _route_curvature(dense: np.ndarray, span_m: float = 0.1) -> np.ndarray:
+    """Unsigned curvature [1/m] of a densely resampled route at each point: the turn of
+    its direction across ±span_m over the arc length between."""
+    k = max(round(span_m / ROUTE_STEP_M), 1)
+    heading = np.unwrap(np.arctan2(*np.diff(dense, axis=0).T[::-1]))
+    heading = np.concatenate([heading, heading[-1:]])
+    ahead = np.concatenate([heading[k:], np.repeat(heading[-1:], k)])
+    behind = np.concatenate([np.repeat(heading[:1], k), heading[:-k]])
+    return np.abs(ahead - behind) / (2 * k * ROUTE_STEP_M)
+
+
+def _lateral(state: WalkerState, point: np.ndarray) -> float:
+    """Sideways offset of `point` (world) from the walker's centre line, + to the left."""
+    return -math.sin(state.phi) * (point[0] - state.x) + math.cos(state.phi) * (point[1] - state.y)

@@ -44,6 +44,11 @@ or on a chair faces); `depth` is the extent along local x, `width` along local y
   a 2 cm modesty panel flush with the front (+x) edge from 0.10 m up to the top.
 - {"kind": "chair", "x", "y", "yaw", "width": 0.45, "depth": 0.45, "seat_height": 0.45,
   "back_height": 0.85} a 5 cm seat, four 3 cm legs and a 4 cm back rest on the −x edge.
+- {"kind": "office-chair", "x", "y", "yaw", "width": 0.46, "depth": 0.46,
+  "seat_height": 0.47, "back_height": 0.95, "base_radius": 0.33} a 6 cm seat on a
+  central column, a 4 cm back rest on the −x edge, and a five-star base on the floor:
+  five 5 cm spokes, 10 cm high, reaching base_radius from the centre (the first along
+  +x), wider than the seat — the office chairs of the thesis's obstacle course (§6.4).
 - {"kind": "box", "x", "y", "yaw", "sx", "sy", "height", "z0": 0.0} one box from z0 up
   to `height` (sx along local x, sy along local y).
 - any kind: {"kind": .., "name": .., "boxes": [{"cx", "cy", "yaw", "sx", "sy", "z0",
@@ -76,7 +81,7 @@ from hardware.errors import ConfigError, UnknownNameError
 from hardware.frames import make_transform
 from hardware.sim.collision import Contact, PolygonSet, rectangle
 
-OBSTACLE_KINDS = ("wall", "table", "desk", "chair", "box")
+OBSTACLE_KINDS = ("wall", "table", "desk", "chair", "office-chair", "box")
 COLLISION_BAND_M = (0.0, 0.95)  # the walker frame stands up to ~0.95 m
 TAG_SURFACE_TOLERANCE_M = 0.02
 _FORMAT_VERSION = 1
@@ -547,6 +552,44 @@ def chair_boxes(
     return tuple(boxes)
 
 
+def office_chair_boxes(
+    x: float,
+    y: float,
+    yaw: float,
+    width: float = 0.46,
+    depth: float = 0.46,
+    seat_height: float = 0.47,
+    back_height: float = 0.95,
+    base_radius: float = 0.33,
+) -> tuple[Box, ...]:
+    """Seat (6 cm) on a 6 cm column, a 4 cm back rest on the −x edge and five 5 cm spokes
+    of a star base, 10 cm high, out to base_radius (facing +x)."""
+    f, seat, column, back, spoke, base_h = (x, y, yaw), 0.06, 0.06, 0.04, 0.05, 0.10
+    _positive(width=width, depth=depth, base_radius=base_radius, column=seat_height - seat - base_h)
+    if back_height <= seat_height:
+        raise ValueError(f"chair back_height {back_height} must exceed seat_height {seat_height}")
+    boxes = [
+        _local_box(f, 0, 0, depth, width, seat_height - seat, seat_height),
+        _local_box(f, 0, 0, column, column, base_h, seat_height - seat),
+        _local_box(f, -(depth - back) / 2, 0, back, width, seat_height, back_height),
+    ]
+    for k in range(5):
+        a = 2 * math.pi * k / 5
+        r = base_radius / 2
+        boxes.append(
+            Box(
+                x + r * math.cos(yaw + a),
+                y + r * math.sin(yaw + a),
+                yaw + a,
+                base_radius,
+                spoke,
+                0.0,
+                base_h,
+            )
+        )
+    return tuple(boxes)
+
+
 def wall_box(
     start: Sequence[float], end: Sequence[float], thickness: float = 0.1, height: float = 2.4
 ) -> Box:
@@ -598,7 +641,12 @@ def _parse_obstacle(e: _Entry, index: int) -> tuple[Obstacle, _Frame | None]:
                 sx, sy = e.num("sx"), e.num("sy")
                 boxes_t = (Box(x, y, yaw, sx, sy, e.num("z0", 0.0), e.num("height")),)
             else:
-                defaults = {"table": (None, None), "desk": (None, None), "chair": (0.45, 0.45)}
+                defaults = {
+                    "table": (None, None),
+                    "desk": (None, None),
+                    "chair": (0.45, 0.45),
+                    "office-chair": (0.46, 0.46),
+                }
                 dw, dd = defaults[kind]
                 w, dp = e.num("width", dw), e.num("depth", dd)
                 sx, sy = dp, w
@@ -609,6 +657,17 @@ def _parse_obstacle(e: _Entry, index: int) -> tuple[Obstacle, _Frame | None]:
                     if not isinstance(modesty, bool):
                         raise _SpecError(f"{e.where}: 'modesty' must be true or false")
                     boxes_t = desk_boxes(x, y, yaw, w, dp, e.num("height", 0.75), modesty)
+                elif kind == "office-chair":
+                    boxes_t = office_chair_boxes(
+                        x,
+                        y,
+                        yaw,
+                        w,
+                        dp,
+                        e.num("seat_height", 0.47),
+                        e.num("back_height", 0.95),
+                        e.num("base_radius", 0.33),
+                    )
                 else:
                     boxes_t = chair_boxes(
                         x, y, yaw, w, dp, e.num("seat_height", 0.45), e.num("back_height", 0.85)

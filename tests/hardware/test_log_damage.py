@@ -9,6 +9,7 @@ stream reader lists the messages of every chunk of the intact file.
 
 from __future__ import annotations
 
+import heapq
 import re
 import warnings
 from dataclasses import dataclass
@@ -21,7 +22,8 @@ from mcap.records import Channel, Chunk, Footer
 from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader, breakup_chunk
 
-from hardware.log import TOPICS, LogError, LogRecoveryWarning, LostSpan, read_log
+from hardware.log import TOPICS, LogError, LogRecoveryWarning, LogWriter, LostSpan, read_log
+from hardware.messages import Collision
 from tests.hardware.test_log import assert_same
 from tests.hardware.test_log_compat import (
     V1_ATTACHMENTS,
@@ -97,12 +99,25 @@ def read_chunks(path: Path, topics: set[str] = MAIN_TOPICS) -> tuple[list[ChunkI
     return chunks, data_end
 
 
+# The one collision of the trial (its channel is declared in the chunk it falls in, not
+# in the first): written into the simulated trial so that the log always has a channel
+# declared after the first chunk, whatever the simulated user did.
+COLLISION = Collision(10.0, "side", "chair-a0", 0.5, 1.2)
+
+
 @pytest.fixture(scope="module")
 def trial(tmp_path_factory: pytest.TempPathFactory) -> Trial:
     from experiments.run import simulate_trial
 
-    path = tmp_path_factory.mktemp("damage") / "trial.mcap"
-    simulate_trial("thesis-course", path, duration_s=20, seed=0)
+    folder = tmp_path_factory.mktemp("damage")
+    simulated, path = folder / "simulated.mcap", folder / "trial.mcap"
+    simulate_trial("thesis-course", simulated, duration_s=20, seed=0)
+    source = read_log(simulated)
+    messages = [m for m in source.messages() if not isinstance(m, Collision)]
+    metadata = {k: v for k, v in source.metadata.items() if k != "calibration"}
+    with LogWriter(path, source.calibration, metadata=metadata) as log:
+        for m in heapq.merge(messages, [COLLISION], key=lambda m: m.t):
+            log.write(m)
     chunks, data_end = read_chunks(path)
     assert len(chunks) > 30
     with warnings.catch_warnings():
@@ -224,8 +239,8 @@ def test_a_damaged_chunk_length_loses_that_chunk(
 def test_a_zeroed_block_loses_the_chunks_it_touches(trial: Trial, tmp_path: Path) -> None:
     """4 kB of zeros in the middle (the reader used to stop there), and 4 kB across the
     end of one chunk, its message indexes and the start of the next."""
-    middle = len(trial.data) // 2
-    k = chunk_at(trial, middle)
+    k = chunk_at(trial, len(trial.data) // 2)
+    middle = (trial.chunks[k].start + trial.chunks[k].end) // 2 - 2048
     for name, at, n_lost in (
         ("middle.mcap", middle, 1),
         ("boundary.mcap", trial.chunks[k + 2].end - 1000, 2),
@@ -318,7 +333,7 @@ def test_the_first_chunk_lost_with_its_declarations(trial: Trial, tmp_path: Path
     path = tmp_path / "first-killed.mcap"
     path.write_bytes(path.parent.joinpath("first.mcap").read_bytes()[: trial.data_end])
     declared_later = [(t, s, m) for t, s, m in trial.messages if t not in first.declares]
-    assert {t for t, _, _ in declared_later} == {"/collisions"}  # the one collision
+    assert {t for t, _, _ in declared_later} == {"/collisions"}  # the one collision (10 s)
     log, got, text = read_damaged(path)
     assert log.topics.keys() == {"/collisions"}
     assert len(got) == len(declared_later) == 1

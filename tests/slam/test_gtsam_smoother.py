@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from helpers import replay
 
-from experiments.metrics import ate, map_scores
+from experiments.metrics import ate, landmark_rmse, map_scores, trajectory_alignment
 from experiments.pipeline import Pipeline
 from hardware.calibration import WalkerCalibration
 from hardware.log import read_log
@@ -14,6 +14,7 @@ from hardware.messages import EncoderTicks, RangeBearing
 from hardware.sim.world import World
 from slam.base import create
 from slam.gtsam_smoother import GtsamConfig
+from slam.landmarks import from_metadata
 
 
 @pytest.mark.slow
@@ -118,9 +119,12 @@ def test_long_odometry_only_chain_does_not_break_the_solver():
 def test_tag_pose_factors_localize_and_map_the_tags(course_trial):
     """observation="tag-pose": each tag a Pose2, each detection a BetweenFactorPose2 with
     its yaw. On the course trial (defaults otherwise) it beats dead reckoning as the
-    range-bearing factors do, and the tags' positions and yaws come out near the truth.
-    Measured (the walker-wide odometry noise default): ATE 0.100 m vs dead reckoning
-    0.558 m; tag position median error 0.17 m, unaligned."""
+    range-bearing factors do, and the tags' positions come out near the truth once the
+    map frame is aligned (the frame itself takes the heading error of the first seconds,
+    before any tag is seen). Measured (the walker-wide odometry noise default, the
+    goggle-wearing users of 2026-12-02): ATE 0.069 m vs dead reckoning 0.305 m; tag RMSE
+    0.070 m aligned, 0.43 m unaligned (seeds 0 and 1 of the course: 0.060 / 0.17 and
+    0.068 / 0.31 m)."""
     trial = read_log(course_trial)
     start = trial.metadata["config"]["initial_pose"]
     sm = create("gtsam", trial.calibration, GtsamConfig(observation="tag-pose"), initial_pose=start)
@@ -129,11 +133,13 @@ def test_tag_pose_factors_localize_and_map_the_tags(course_trial):
     dr, _, _ = replay(course_trial, "dead-reckoning")
     gt = pipe.recorded.groundtruth_trajectory()
     assert ate(sm.trajectory(), gt)["ate_rmse_m"] < 0.3 * ate(dr.trajectory(), gt)["ate_rmse_m"]
-    world = World.from_dict(trial.metadata["world"])
     lms = sm.landmarks()
     assert len(lms) >= 20 and sm.diagnostics()["without_yaw"] == 0
-    err = [np.hypot(*(m - [world.tag(i).x, world.tag(i).y])) for i, (m, _) in lms.items()]
-    assert np.median(err) < 0.25
+    est = {i: m for i, (m, _) in lms.items()}
+    aligned = landmark_rmse(
+        est, from_metadata(trial.metadata), trajectory_alignment(sm.trajectory(), gt)
+    )
+    assert aligned < 0.1
     assert all(np.all(np.linalg.eigvalsh(c) > 0) for _, c in lms.values())
 
 

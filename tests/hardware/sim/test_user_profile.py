@@ -55,14 +55,17 @@ def test_route_offset_is_sideways_and_tapered():
 
 def test_no_profile_is_exactly_the_old_user():
     """Without a profile the simulator's user is UserParams on World.route, drawing from
-    the same random stream as before profiles existed."""
+    the same random streams as before profiles existed (and the goggles' own)."""
     world = load_world("thesis-course")
     cfg = SimConfig(seed=3)
     a = truth(Simulator(world, cfg), 15.0)
     ref = Simulator(world, cfg)
-    rng_user = np.random.default_rng(np.random.SeedSequence(3).spawn(4)[1])
+    streams = np.random.SeedSequence(3).spawn(5)
+    rng_user, rng_vision = (np.random.default_rng(streams[i]) for i in (1, 4))
     w = cfg.walker
-    ref.user = RouteFollower(world.route, ref.state, w, cfg.user, rng_user)
+    ref.user = RouteFollower(
+        world.route, ref.state, w, cfg.user, rng_user, world, rng_vision, world.route
+    )
     assert np.array_equal(a, truth(ref, 15.0))
     assert asdict(cfg)["user_profile"] is None
 

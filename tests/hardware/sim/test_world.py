@@ -14,6 +14,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.sim.collision import body_rectangle, point_polygon_distance
 from hardware.sim.tag_camera import SimTagCamera, TagCameraConfig
 from hardware.sim.world import (
+    COLLISION_BAND_M,
     Box,
     Obstacle,
     TagPose,
@@ -22,6 +23,7 @@ from hardware.sim.world import (
     chair_boxes,
     desk_boxes,
     load_world,
+    office_chair_boxes,
     smooth_route,
     table_boxes,
 )
@@ -31,6 +33,7 @@ from hardware.sim.world import (
 WALKER = (-0.10, 0.64, -0.345, 0.345)
 CLEARANCE_M = 0.08
 PASSAGE_M = 0.9
+ABOVE_BASES_M = 0.2  # above an office chair's star base (0.1 m high)
 
 
 def minimal_world(**kw) -> dict:
@@ -148,6 +151,26 @@ def test_furniture_boxes() -> None:
     assert back.cx < 0 and back.z1 == pytest.approx(0.85)
 
 
+def test_office_chair_has_a_star_base_wider_than_its_seat() -> None:
+    boxes = office_chair_boxes(1.0, 2.0, math.radians(30.0))
+    seat, _column, back, *spokes = boxes
+    assert seat.z1 == pytest.approx(0.47) and back.cx < 1.0 and back.z1 == pytest.approx(0.95)
+    assert len(spokes) == 5 and all(b.z0 == 0.0 and b.z1 == pytest.approx(0.10) for b in spokes)
+    # Spokes 72° apart, the first along the chair's heading, each reaching 0.33 m out.
+    tips = [np.array([b.cx, b.cy]) - [1.0, 2.0] for b in spokes]
+    angles = sorted(math.degrees(math.atan2(t[1], t[0])) % 360 for t in tips)
+    np.testing.assert_allclose(np.diff(angles), 72.0, atol=1e-9)
+    assert angles[0] == pytest.approx(30.0)
+    reach = max(np.abs(b.corners() - [1.0, 2.0]).max() for b in spokes)
+    assert reach > seat.sx / 2 + 0.05  # the base sticks out beyond the seat
+    # What a user sees (above 0.2 m) is the seat and back, not the base.
+    w = World.from_dict(
+        minimal_world(obstacles=[{"kind": "office-chair", "name": "c", "x": 3, "y": 0}])
+    )
+    assert len(w.footprint_polygons(0.2, COLLISION_BAND_M[1])) == 3
+    assert len(w.footprint_polygons()) == 8
+
+
 def test_footprint_polygons_height_band() -> None:
     w = World.from_dict(
         minimal_world(
@@ -226,12 +249,16 @@ def sweep_poses(
 
 @pytest.mark.parametrize("name", ["thesis-course", "corner"])
 def test_route_is_collision_free_with_clearance(name: str) -> None:
+    # Clearance from everything reaching above the office chairs' star bases (0.1 m high,
+    # under the way a user sees), and no contact with the bases themselves.
     w = load_world(name)
     poses = sweep_poses(w.route)
     rects = np.array([body_rectangle(p, *WALKER) for p in poses])
-    dist, who = w.polygon_set().clearances(rects, max_dist=0.5)
+    dist, who = w.polygon_set(ABOVE_BASES_M, COLLISION_BAND_M[1]).clearances(rects, max_dist=0.5)
     worst = int(np.argmin(dist))
     assert dist[worst] >= CLEARANCE_M, f"{who[worst]} at {poses[worst]}: {dist[worst]:.3f} m"
+    dist, who = w.polygon_set().clearances(rects, max_dist=0.5)
+    assert dist.min() > 0.0, who[int(np.argmin(dist))]
 
 
 @pytest.mark.parametrize("name", ["thesis-course", "corner"])
@@ -257,16 +284,19 @@ def route_samples(route: np.ndarray, step: float = 0.02) -> np.ndarray:
     return np.vstack([*pts, route[-1:]])
 
 
-def nearest_obstacle(w: World, pts: np.ndarray) -> np.ndarray:
-    return np.min([point_polygon_distance(pts, p) for _, p in w.footprint_polygons()], axis=0)
+def nearest_obstacle(w: World, pts: np.ndarray, z_min: float = 0.0) -> np.ndarray:
+    footprints = w.footprint_polygons(z_min, COLLISION_BAND_M[1])
+    return np.min([point_polygon_distance(pts, p) for _, p in footprints], axis=0)
 
 
 @pytest.mark.parametrize("name", ["thesis-course", "corner"])
 def test_passages_are_at_least_90cm(name: str) -> None:
-    # Every point of the route (every 2 cm) is >= 0.45 m from every obstacle footprint:
-    # a 0.9 m wide band centred on the route is free, so no passage on it is narrower.
+    # Every point of the route (every 2 cm) is >= 0.45 m from every obstacle footprint
+    # above the office chairs' star bases (which reach under the way, as a chair's base
+    # does under a desk): a 0.9 m wide band centred on the route is free, so no passage
+    # on it is narrower, measured as a person measures a path between furniture.
     w = load_world(name)
-    d = nearest_obstacle(w, route_samples(w.route))
+    d = nearest_obstacle(w, route_samples(w.route), ABOVE_BASES_M)
     assert d.min() >= PASSAGE_M / 2 - 1e-9
 
 
@@ -283,7 +313,7 @@ def test_thesis_course_layout() -> None:
     walls = [o for o in w.obstacles if o.kind == "wall"]
     furniture = [o for o in w.obstacles if o.kind != "wall"]
     kinds = {o.kind for o in furniture}
-    assert {"table", "desk", "chair"} <= kinds and len(furniture) >= 30
+    assert {"table", "desk", "office-chair"} <= kinds and len(furniture) >= 30
     inner = np.vstack([bx.corners() for o in furniture for bx in o.boxes])
     assert inner.min(axis=0) == pytest.approx([0.0, 0.0], abs=1e-9)
     assert inner.max(axis=0) == pytest.approx([10.5, 7.0], abs=1e-9)  # the 10.5 m × 7 m room
