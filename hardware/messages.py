@@ -177,6 +177,30 @@ class DeviceEvent:
     detail: str = ""
 
 
+@dataclass(frozen=True, slots=True)
+class CompassHeading:
+    """The walker's heading [rad] in the map frame (CCW from +x, wrapped to (−π, π]) from
+    an absolute sensor (a compass, a simulator's noisy true heading), with its standard
+    deviation [rad] when the source knows it, NaN otherwise (a localizer then uses its
+    configured noise, slam.absolute.AbsoluteConfig)."""
+
+    t: float
+    heading_rad: float
+    sigma_rad: float = float("nan")
+
+
+@dataclass(frozen=True, slots=True)
+class PositionFix:
+    """An absolute position [m] of the walker's reference point (the rear-axle centre) in
+    the map frame, e.g. a GPS fix projected to local metres, with its standard deviation
+    per axis [m] when the source knows it, NaN otherwise."""
+
+    t: float
+    x: float
+    y: float
+    sigma_m: float = float("nan")
+
+
 Message = (
     EncoderTicks
     | BrakeCommand
@@ -188,6 +212,8 @@ Message = (
     | GroundTruthPose
     | Collision
     | DeviceEvent
+    | CompassHeading
+    | PositionFix
 )
 
 MESSAGE_TYPES: tuple[type, ...] = (
@@ -201,6 +227,8 @@ MESSAGE_TYPES: tuple[type, ...] = (
     GroundTruthPose,
     Collision,
     DeviceEvent,
+    CompassHeading,
+    PositionFix,
 )
 
 

@@ -49,6 +49,8 @@ command stream). A topic holds a single message type.
     /groundtruth/pose/exact    companion        json / walker.GroundTruthPoseExact
     /collisions              Collision          json / walker.Collision
     /events                  DeviceEvent        json / walker.DeviceEvent
+    /compass                 CompassHeading     json / walker.CompassHeading
+    /fix                     PositionFix        json / walker.PositionFix
 
 JSON channels have schema encoding "jsonschema"; protobuf channels carry the
 FileDescriptorSet of the Foxglove schema (schema encoding "protobuf"). A channel's schema
@@ -84,6 +86,10 @@ JSON integers. Units are SI. Schemas (all fields required):
     walker.DeviceEvent        t [s], device [str], event [str: connected | disconnected |
                               reconnected | reset | rebased | gap-motion | stalled |
                               resumed], detail [str]
+    walker.CompassHeading     t [s], heading_rad [rad, CCW from the map's +x, (−π, π]],
+                              sigma_rad [rad, standard deviation; "NaN" when unknown]
+    walker.PositionFix        t [s], x, y [m, the reference point in the map frame],
+                              sigma_m [m, standard deviation per axis; "NaN" when unknown]
     walker.TagDetections      t [s], detections: list of {tag_id [int],
                               camera_T_tag [16 numbers: the 4×4 transform, row-major, m],
                               corners_px [8 numbers: u0, v0, ..., u3, v3, px],

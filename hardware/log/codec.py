@@ -36,12 +36,14 @@ from hardware.messages import (
     BrakeCommand,
     CameraIntrinsics,
     Collision,
+    CompassHeading,
     DepthFrame,
     DeviceEvent,
     EncoderTicks,
     GroundTruthPose,
     LaserScan,
     Message,
+    PositionFix,
     RangeBearing,
     TagDetection,
     TagDetections,
@@ -372,6 +374,23 @@ CODECS: dict[type, Codec] = {
             PoseInFrame.FromString,
             _dec_pose,
             (Companion(POSE_EXACT, _exact_topic, _json),),
+        ),
+        flat(
+            CompassHeading,
+            "/compass",
+            {
+                "heading_rad": "heading [rad], CCW from the map's +x, in (-pi, pi]",
+                "sigma_rad": "standard deviation [rad], NaN when unknown",
+            },
+        ),
+        flat(
+            PositionFix,
+            "/fix",
+            {
+                "x": "position x [m, map frame]",
+                "y": "position y [m, map frame]",
+                "sigma_m": "standard deviation per axis [m], NaN when unknown",
+            },
         ),
     )
 }
