@@ -5,6 +5,9 @@ State [x, y, θ, u_1, v_1, …]; a landmark joins the state at its first observa
 increments predict; range-bearing observations (tags seen by the camera, or range-bearing
 datasets) update, one landmark at a time, after a Mahalanobis gate rejects outliers.
 Observations without an ID (< 0) are not used (this filter needs known association).
+Absolute observations (`absolute`, slam.absolute: a compass heading, a position fix),
+when switched on, are Kalman updates of the pose block (heading innovation wrapped),
+behind a Mahalanobis gate at the chi-squared quantile `absolute.gate_prob`.
 """
 
 from __future__ import annotations
@@ -18,6 +21,12 @@ from hardware.choices import Choice, coerce
 from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
+from slam.absolute import (
+    AbsoluteConfig,
+    AbsoluteObservation,
+    absolute_observation,
+    fused_count,
+)
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
@@ -55,6 +64,8 @@ class EkfSlamConfig(LocalizerConfig):
     odometry (slam.rts, pose-only), so a loop closure's correction also moves the path
     that led to it and the pipeline rebuilds the map along it (`revises_past`);
     "none": the filtered poses, each fixed when it was recorded.
+    absolute: compass / position-fix fusion (slam.absolute.AbsoluteConfig; off by
+    default), gated at absolute.gate_prob.
     """
 
     noise: MotionNoise = field(default_factory=MotionNoise)
@@ -63,6 +74,7 @@ class EkfSlamConfig(LocalizerConfig):
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     gate_chi2: float = 13.8
     smoother: EkfSmoother = EkfSmoother.RTS
+    absolute: AbsoluteConfig = field(default_factory=AbsoluteConfig)
 
     def __post_init__(self) -> None:
         coerce(self, smoother=EkfSmoother)
@@ -83,6 +95,9 @@ class EkfSlam(Localizer):
         self._cross = [0.0, 0.0]
         self.index: dict[int, int] = {}  # landmark id → state offset
         self.counts = {"updates": 0, "new_landmarks": 0, "gated": 0, "without_id": 0}
+        if config.absolute.enabled:
+            self.counts.update(compass_updates=0, position_updates=0, absolute_gated=0)
+        self._gates = {dof: config.absolute.gate(dof) for dof in (1, 2)}
         self.track = TrajectoryRecorder()
         self.revises_past = config.smoother == "rts"
         # per recorded step, for the smoother: the pose covariance (after the updates of
@@ -100,6 +115,8 @@ class EkfSlam(Localizer):
             self._record(msg.t)
         elif (obs := landmark_observation(msg, self.calibration)) is not None:
             self._observe(obs)
+        elif (fix := absolute_observation(msg, self.config.absolute)) is not None:
+            self._absolute(fix)
         if not self.track and self.odometry.has_odometry:
             self._record(msg.t)
 
@@ -143,9 +160,26 @@ class EkfSlam(Localizer):
             else:
                 self._add_landmark(lid, z)
         self._unsync()
+        self._after_observation()
+
+    def _after_observation(self) -> None:
+        """The smoother's last step takes the corrected covariance; the past is revised."""
         if self.revises_past and self._f_cov:
             self._f_cov[-1] = self._cov3
             self.revision += 1
+
+    def _absolute(self, obs: AbsoluteObservation) -> None:
+        """A Kalman update of the pose by a compass heading or a position fix (gated)."""
+        self._sync()
+        h = obs.jacobian
+        pht = self._P[:, :3] @ h.T
+        s = h @ pht[:3] + obs.covariance
+        if self._correct(pht, s, obs.residual(self._x[:3]), self._gates[len(obs.z)]):
+            self.counts[f"{obs.kind}_updates"] += 1
+        else:
+            self.counts["absolute_gated"] += 1
+        self._unsync()
+        self._after_observation()
 
     def _add_landmark(self, lid: int, z: np.ndarray) -> None:
         pose = self._x[:3]
@@ -171,17 +205,24 @@ class EkfSlam(Localizer):
         s = g_s @ pht[:3] + g_l @ pht[j : j + 2] + self._noise(z)
         nu = z - range_bearing(x[:3], lm)
         nu[1] = wrap_angle(nu[1])
-        s_inv = np.linalg.inv(s)
-        if float(nu @ s_inv @ nu) > self.config.gate_chi2:
+        if self._correct(pht, s, nu, self.config.gate_chi2):
+            self.counts["updates"] += 1
+        else:
             self.counts["gated"] += 1
-            return
+
+    def _correct(self, pht: np.ndarray, s: np.ndarray, nu: np.ndarray, gate: float) -> bool:
+        """The Kalman correction x += K ν, P −= K S Kᵀ with K = P Hᵀ S⁻¹ (pht = P Hᵀ, s =
+        S), unless ν's squared Mahalanobis distance exceeds `gate` (then False)."""
+        s_inv = np.linalg.inv(s)
+        if float(nu @ s_inv @ nu) > gate:
+            return False
         k = pht @ s_inv
-        self._x = x + k @ nu
+        self._x = self._x + k @ nu
         self._x[2] = wrap_angle(self._x[2])
-        self._P = p - k @ s @ k.T
+        self._P = self._P - k @ s @ k.T
         self._P = 0.5 * (self._P + self._P.T)
-        self.counts["updates"] += 1
         self.track.amend(tuple(self._x[:3].tolist()))
+        return True
 
     def _record(self, t: float) -> None:
         n = len(self.track)
@@ -230,7 +271,9 @@ class EkfSlam(Localizer):
 
     def diagnostics(self) -> dict:
         notes = dict(self.counts)
-        if self.counts["updates"] == 0 and self.counts["new_landmarks"] == 0:
+        c = self.counts
+        absolute = fused_count(c)
+        if c["updates"] == 0 and c["new_landmarks"] == 0 and absolute == 0:
             notes["note"] = "no landmark observations with an ID: odometry only"
         return notes
 

@@ -14,6 +14,15 @@ tags' yaw flips); observations without a yaw (range-bearing datasets) are skippe
 counted. Every update revises the past: `trajectory()` is the smoothed estimate,
 every odometry message placed relative to its (smoothed) keyframe.
 
+Absolute observations (`absolute`, slam.absolute; off by default) attach to the latest
+keyframe as landmarks do (a new keyframe starts at them when they come
+`obs_keyframe_dt_s` or more after it and the walker has moved): a compass heading is a
+`PoseRotationPrior2D` on the keyframe (the heading measured, less the turn since the
+keyframe), a position fix a GPS-like factor (`position_factor`, a CustomFactor: the
+map-frame position of the walker's point at the offset it has moved since the keyframe,
+in the keyframe's frame; with no offset it is `PoseTranslationPrior2D`); both Huber-
+robust at `absolute.robust_k` σ when that is > 0.
+
 Scan matching (`scan_matching=True`, off by default). Laser scans (`LaserScan`, with
 the laser's mount `laser_offset` on the walker) and depth frames (`DepthFrame`: the
 obstacle band flattened to the floor, `mapping.depth_points`) become 2-D point sets in
@@ -81,6 +90,14 @@ from hardware.choices import Choice, coerce
 from hardware.geometry import compose, wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
+from slam.absolute import (
+    AbsoluteConfig,
+    AbsoluteObservation,
+    absolute_observation,
+    fused_count,
+    offset_position,
+    offset_position_jacobian,
+)
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
@@ -223,6 +240,8 @@ class GtsamConfig(LocalizerConfig):
     Intel's robot_frontlaser_offset is 0); scan (SequentialScans): which scans are kept
     and how each is matched to the ones before it; loop (LoopClosures): loop closures;
     both accept a match through a MatchGate.
+    absolute: compass / position-fix factors (slam.absolute.AbsoluteConfig; off by
+    default; module docstring).
     """
 
     prior_sigma: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
@@ -254,6 +273,7 @@ class GtsamConfig(LocalizerConfig):
     odometry_adaptive_min_matches: int = 10
     odometry_adaptive_range: tuple[float, float] = (0.1, 100.0)
     loop: LoopClosures = field(default_factory=lambda: LoopClosures())
+    absolute: AbsoluteConfig = field(default_factory=AbsoluteConfig)
 
     def __post_init__(self) -> None:
         coerce(
@@ -284,6 +304,26 @@ def _robust(kind: str, k: float, base: gtsam.noiseModel.Base) -> gtsam.noiseMode
         else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
     )
     return gtsam.noiseModel.Robust.Create(est, base)
+
+
+def position_factor(
+    key: int, z: np.ndarray, offset: np.ndarray, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
+    """A GPS-like factor on Pose2 `key`: the map-frame position of the point `offset`
+    (dx, dy) in the pose's frame is measured as z; error = position − z, with the
+    Jacobian of slam.absolute.offset_position_jacobian (checked numerically in the
+    tests). With offset 0 it is gtsam.PoseTranslationPrior2D."""
+    z = np.array(z, dtype=float)
+    offset = np.array(offset, dtype=float)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        p = values.atPose2(this.keys()[0])
+        pose = np.array([p.x(), p.y(), p.theta()])
+        if jacobians is not None:
+            jacobians[0] = offset_position_jacobian(pose, offset)
+        return offset_position(pose, offset) - z
+
+    return gtsam.CustomFactor(noise, [key], error)
 
 
 def _body_covariance(cov: np.ndarray, theta: float) -> np.ndarray:
@@ -321,6 +361,8 @@ class GtsamSmoother(Localizer):
         self._marginal: np.ndarray | None = None
         self._cache: tuple[int, Trajectory] | None = None
         self.counts = {"keyframes": 0, "landmark_factors": 0, "without_id": 0, "updates": 0}
+        if config.absolute.enabled:
+            self.counts.update(compass_factors=0, position_factors=0)
         self._tags = config.observation == "tag-pose"
         if self._tags:
             self.counts["without_yaw"] = 0
@@ -357,6 +399,8 @@ class GtsamSmoother(Localizer):
                 self._new_keyframe(msg.t)
         elif (obs := landmark_observation(msg, self.calibration)) is not None:
             self._observe(obs)
+        elif (fix := absolute_observation(msg, self.config.absolute)) is not None:
+            self._absolute(fix)
         elif self.config.scan_matching and isinstance(msg, LaserScan | DepthFrame):
             self._scan(msg)
         if self._kf < 0 and self.odometry.has_odometry:
@@ -440,11 +484,33 @@ class GtsamSmoother(Localizer):
         self._flush()
         self._note(t)
 
+    def _attach(self, t: float) -> None:
+        """An observation at t attaches to the latest keyframe, or starts a new one at t
+        when it comes obs_keyframe_dt_s or more after it and the walker has moved."""
+        if t - self._kf_t[-1] >= self.config.obs_keyframe_dt_s and np.any(self._delta != 0):
+            self._new_keyframe(t)
+
+    def _absolute(self, obs: AbsoluteObservation) -> None:
+        """A compass heading or a position fix as a factor on its keyframe (module
+        docstring)."""
+        if self._kf < 0:
+            return
+        self._attach(obs.t)
+        a = self.config.absolute
+        base = gtsam.noiseModel.Isotropic.Sigma(len(obs.z), obs.sigma)
+        noise = _robust("huber" if a.robust_k > 0 else "none", a.robust_k, base)
+        if obs.is_heading:
+            measured = gtsam.Rot2(float(obs.z[0] - self._delta[2]))
+            self._graph.add(gtsam.PoseRotationPrior2D(X(self._kf), measured, noise))
+        else:
+            self._graph.add(position_factor(X(self._kf), obs.z, self._delta[:2], noise))
+        self.counts[f"{obs.kind}_factors"] += 1
+        self._flush()
+
     def _observe(self, obs: LandmarkObservation) -> None:
         if self._kf < 0 or len(obs) == 0:
             return
-        if obs.t - self._kf_t[-1] >= self.config.obs_keyframe_dt_s and np.any(self._delta != 0):
-            self._new_keyframe(obs.t)
+        self._attach(obs.t)
         c = self.config
         for lid, z, yaw in zip(obs.ids, obs.z, obs.yaw, strict=True):
             lid = int(lid)
@@ -756,7 +822,7 @@ class GtsamSmoother(Localizer):
             notes["odometry_sigma_scale"] = [round(float(v), 3) for v in self._odo_scale]
             if self.counts["scan_factors"] + self.counts["loop_closures"] == 0:
                 notes["note"] = "scan matching on, but no scan was matched: odometry only"
-        elif self.counts["landmark_factors"] == 0:
+        elif self.counts["landmark_factors"] == 0 and fused_count(self.counts) == 0:
             notes["note"] = "no landmark observations with an ID: odometry only"
         return notes
 
