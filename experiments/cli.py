@@ -182,7 +182,7 @@ def _dataset_options(robot, relations, time_offset, extra: list[str] | None = No
 @app.command(name="import")
 @friendly
 def import_(
-    format: Annotated[str, typer.Argument(help="mrclam, carmen or victoria-park")],
+    format: Annotated[str, typer.Argument(help="mrclam, carmen, victoria-park or mtrx5700")],
     path: Annotated[Path, typer.Argument(help="dataset folder or log file")],
     output: Annotated[Path, typer.Option("-o", "--output", help="trial log to write (.mcap)")],
     robot: RobotOpt = None,
@@ -208,7 +208,7 @@ _ReplayMapModelOpt = Annotated[
     str, typer.Option(help="log-odds, or view-count (the thesis's >50 % of views)")
 ]
 _ReplayFormatOpt = Annotated[
-    str | None, typer.Option(help="read LOG as a dataset: mrclam, carmen, victoria-park")
+    str | None, typer.Option(help="read LOG as a dataset: mrclam, carmen, victoria-park, mtrx5700")
 ]
 _ReplayControllerOpt = Annotated[
     str | None,
@@ -454,7 +454,8 @@ def compare(
     seeds: Annotated[int, typer.Option(help="runs of each stochastic localizer")] = 3,
     out: Annotated[Path, typer.Option(help="output folder")] = Path("out/compare"),
     format: Annotated[
-        str | None, typer.Option(help="read LOGS as datasets: mrclam, carmen, victoria-park")
+        str | None,
+        typer.Option(help="read LOGS as datasets: mrclam, carmen, victoria-park, mtrx5700"),
     ] = None,
     robot: Annotated[
         str | None, typer.Option(help="mrclam: robot numbers separated by commas, e.g. 1,2,3,4,5")

@@ -274,7 +274,9 @@ def _evaluate(r: _Replay):
     }
     estimated = None
     if r.true_landmarks is not None and isinstance(loc, LandmarkMapper):
-        estimated = {i: mean for i, (mean, _) in loc.landmarks().items()}
+        # none estimated (a map nothing observed, e.g. MTRX5700's beacons): no landmark metric
+        estimated = {i: mean for i, (mean, _) in loc.landmarks().items()} or None
+    if estimated is not None:
         metrics["landmark_rmse_unaligned_m"] = M.landmark_rmse(estimated, r.true_landmarks)
     _diagnostics(r, metrics)
     est = loc.trajectory()
