@@ -83,12 +83,21 @@ def simulate(
     depth_size: Annotated[
         str, typer.Option(help="depth image size WxH, up to 640x480")
     ] = "160x120",
+    gyro: Annotated[
+        bool,
+        typer.Option(
+            "--gyro",
+            help="carry a simulated MEMS yaw-rate gyro (an MPU-6050) and record its "
+            "/imu/gyro stream; the other sensors are as without it",
+        ),
+    ] = False,
 ) -> None:
     """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log."""
     from dataclasses import replace
 
     from experiments.config import checked
     from experiments.run import simulate_trial
+    from hardware.sim.gyro import GyroSimConfig
     from hardware.sim.simulator import SimConfig
 
     width, height = parse_size(depth_size)
@@ -100,6 +109,7 @@ def simulate(
             surface=surface,
             seed=seed,
             duration_s=duration,
+            gyro=GyroSimConfig(enabled=gyro),
         ),
         "simulate",
     )
