@@ -265,7 +265,7 @@ def replay(
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
     from control.base import CONTROLLERS
     from experiments.config import configure
-    from experiments.run import replay_log
+    from experiments.run import check_gyro, replay_log
     from mapping.grid import GridConfig, MapModel
     from mapping.mapper import MapperConfig
     from slam.base import LOCALIZERS
@@ -291,6 +291,7 @@ def replay(
 
     # the settings the source proposes (e.g. a dataset's noise levels), then --set
     built = configure(LOCALIZERS, localizer, trial.metadata, overrides)
+    check_gyro(built.config, trial, str(log))
     if built.proposed:
         what = ", ".join(f"{k}={v}" for k, v in built.proposed.items())
         err_console.print(f"note: the source proposes {what}", highlight=False, soft_wrap=True)

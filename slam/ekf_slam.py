@@ -229,7 +229,7 @@ class EkfSlam(Localizer):
         }
 
     def diagnostics(self) -> dict:
-        notes = dict(self.counts)
+        notes = {**self.counts, **self.odometry.diagnostics()}
         if self.counts["updates"] == 0 and self.counts["new_landmarks"] == 0:
             notes["note"] = "no landmark observations with an ID: odometry only"
         return notes

@@ -678,7 +678,7 @@ class ParticleFilter(Localizer):
         return self._path_cache[1]
 
     def diagnostics(self) -> dict:
-        notes = dict(self.counts)
+        notes = {**self.counts, **self.odometry.diagnostics()}
         notes["particles"] = len(self.particles)
         if self.counts["landmark_observations"] == 0 and self.counts["scan_updates"] == 0:
             notes["note"] = ODOMETRY_ONLY_NOTE
