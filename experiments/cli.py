@@ -83,12 +83,21 @@ def simulate(
     depth_size: Annotated[
         str, typer.Option(help="depth image size WxH, up to 640x480")
     ] = "160x120",
+    gyro: Annotated[
+        bool,
+        typer.Option(
+            "--gyro",
+            help="carry a simulated MEMS yaw-rate gyro (an MPU-6050) and record its "
+            "/imu/gyro stream; the other sensors are as without it",
+        ),
+    ] = False,
 ) -> None:
     """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log."""
     from dataclasses import replace
 
     from experiments.config import checked
     from experiments.run import simulate_trial
+    from hardware.sim.gyro import GyroSimConfig
     from hardware.sim.simulator import SimConfig
 
     width, height = parse_size(depth_size)
@@ -100,6 +109,7 @@ def simulate(
             surface=surface,
             seed=seed,
             duration_s=duration,
+            gyro=GyroSimConfig(enabled=gyro),
         ),
         "simulate",
     )
@@ -255,7 +265,7 @@ def replay(
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
     from control.base import CONTROLLERS
     from experiments.config import configure
-    from experiments.run import replay_log
+    from experiments.run import check_gyro, replay_log
     from mapping.grid import GridConfig, MapModel
     from mapping.mapper import MapperConfig
     from slam.base import LOCALIZERS
@@ -281,6 +291,7 @@ def replay(
 
     # the settings the source proposes (e.g. a dataset's noise levels), then --set
     built = configure(LOCALIZERS, localizer, trial.metadata, overrides)
+    check_gyro(built.config, trial, str(log))
     if built.proposed:
         what = ", ".join(f"{k}={v}" for k, v in built.proposed.items())
         err_console.print(f"note: the source proposes {what}", highlight=False, soft_wrap=True)

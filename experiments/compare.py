@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from experiments.config import configure
-from experiments.run import MAP_BAND_M, ReplayResult, replay_log
+from experiments.run import MAP_BAND_M, ReplayResult, check_gyro, replay_log
 from hardware.datasets import Dataset
 from hardware.log import TrialLog, read_log
 from slam.base import LOCALIZERS
@@ -141,7 +141,8 @@ def compare(
         name = source_name(source)
         for loc in localizers:
             user = dict((overrides or {}).get(loc, {}))
-            configure(LOCALIZERS, loc, trial.metadata, user)  # bad settings fail first
+            built = configure(LOCALIZERS, loc, trial.metadata, user)  # bad settings fail first
+            check_gyro(built.config, trial, name)
             for seed in range(seeds) if is_stochastic(loc) else [None]:
                 over = user if seed is None else {**user, "seed": seed}
                 run_dir = out / name / loc / ("run" if seed is None else f"seed{seed}")

@@ -49,6 +49,7 @@ from hardware.live import LiveSources
 from hardware.log import LogWriter
 from hardware.messages import BrakeCommand, DepthFrame, EncoderTicks, LaserScan, Message
 from slam.base import LOCALIZERS, create
+from slam.motion import uses_gyro
 
 # What a live run's loop does unless told otherwise: a command right after every depth
 # frame (the lowest frame-to-command latency), at 10 Hz while frames stall, no simulated
@@ -71,6 +72,7 @@ class SimWalker:
     depth_size: tuple[int, int] = (160, 120)
     depth_rate_hz: int = 10
     firmware: bool = False  # the compiled firmware in simavr instead of the emulator
+    gyro: bool = False  # the walker's gyro, an IMU on the board
     cpus: tuple[int, ...] | None = None  # CPUs for the simulated walker (another machine)
 
 
@@ -274,6 +276,7 @@ class LiveRun:
             str(sim.depth_rate_hz),
             "--board",
             "firmware" if sim.firmware else "emulator",
+            *(["--gyro"] if sim.gyro else []),
         ]
         self._world = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1
@@ -420,6 +423,12 @@ class LiveRun:
         opts, cal = self.options, self.cal
         self.initial = (self.metadata.get("world") or {}).get("start_pose") or (0.0, 0.0, 0.0)
         built = configure(LOCALIZERS, opts.localizer, self.metadata, opts.localizer_overrides)
+        hs = self.board.handshake if self.board is not None else None
+        if uses_gyro(built.config) and (hs is None or hs.gyro_lsb_per_10dps is None):
+            raise LiveError(
+                f"{self.board.port if self.board else 'the board'}: the board reports no "
+                f"gyro (no IMU answered it) but {opts.localizer}.noise.gyro.enabled is set"
+            )
         self.proposed = built.proposed
         loc = create(opts.localizer, cal, built.config, initial_pose=tuple(self.initial))
         ctl = CONTROLLERS.create(opts.controller, cal, config=ctl_cfg)

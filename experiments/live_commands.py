@@ -159,6 +159,10 @@ _SimOpt = Annotated[
 _FirmwareOpt = Annotated[
     bool, typer.Option("--firmware", help="--sim: the compiled firmware in simavr")
 ]
+_GyroOpt = Annotated[
+    bool,
+    typer.Option("--gyro", help="--sim: the walker carries a yaw-rate gyro (an IMU on the board)"),
+]
 _FoxgloveOpt = Annotated[
     bool, typer.Option("--foxglove", help="serve the streams to Foxglove (WebSocket)")
 ]
@@ -185,6 +189,7 @@ def live(
     set_: _SetOpt = None,
     sim: _SimOpt = False,
     firmware: _FirmwareOpt = False,
+    gyro: _GyroOpt = False,
     course: Annotated[str, typer.Option(help="--sim: course name or JSON")] = "thesis-course",
     seed: Annotated[int, typer.Option(help="--sim: random seed")] = 0,
     surface: Annotated[str, typer.Option(help="--sim: clean, dusty or S")] = "dusty",
@@ -206,8 +211,8 @@ def live(
     sets = _live_sets(localizer, controller, set_ or [])
     if sim and (serial is not None or depth != "none" or camera != "none"):
         raise LiveError("--sim brings its own board and cameras: drop --serial/--depth/--camera")
-    if firmware and not sim:
-        raise LiveError("--firmware goes with --sim")
+    if (firmware or gyro) and not sim:
+        raise LiveError("--firmware and --gyro go with --sim")
     sim_walker = None
     if sim:
         sim_walker = SimWalker(
@@ -218,6 +223,7 @@ def live(
             depth_size=parse_size(depth_size),
             depth_rate_hz=depth_rate,
             firmware=firmware,
+            gyro=gyro,
         )
     opts = LiveOptions(
         localizer=localizer,

@@ -62,6 +62,18 @@ def ate(est: Trajectory, gt: Trajectory) -> dict[str, float]:
     }
 
 
+def heading_errors(est: Trajectory, gt: Trajectory) -> dict[str, float]:
+    """|θ_est − θ_true| (wrapped, unaligned: both start at the true start pose) at the
+    ground-truth times: at the end, its maximum and median [deg]."""
+    _, e, g = associate(est, gt)
+    err = np.degrees(np.abs(np.remainder(e[:, 2] - g[:, 2] + np.pi, 2 * np.pi) - np.pi))
+    return {
+        "final_heading_error_deg": float(err[-1]),
+        "heading_error_max_deg": float(err.max()),
+        "heading_error_median_deg": float(np.median(err)),
+    }
+
+
 def rpe(est: Trajectory, gt: Trajectory, delta_s: float = 1.0) -> dict[str, float]:
     """Relative pose error over time steps of delta_s: RMSE of translation and rotation."""
     t, e, g = associate(est, gt)

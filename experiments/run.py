@@ -27,12 +27,14 @@ from experiments.simulation import VERSION, RunSpec, simulate
 from hardware.datasets import Dataset
 from hardware.errors import ConfigError, UnknownNameError
 from hardware.log import TrialLog, read_log
+from hardware.messages import GyroRate
 from hardware.sim.simulator import SimConfig
 from hardware.sim.world import World
 from mapping.export import save_map_server
 from mapping.mapper import MapperConfig
 from slam import landmarks
 from slam.base import LOCALIZERS, LandmarkMapper, create
+from slam.motion import uses_gyro
 
 # The mapper's obstacle band: what the map should show of the true world.
 MAP_BAND_M = (0.05, 2.0)
@@ -184,6 +186,23 @@ def replay_log(
     return ReplayResult(r.out, metrics, duration, files, r.pipeline, r.world)
 
 
+def check_gyro(config: Any, trial: TrialLog | Dataset, name: str) -> None:
+    """ConfigError naming the source when a localizer's config asks for the gyro
+    (noise.gyro.enabled) and the source has no gyro messages: the user asked for the
+    gyro explicitly, so running without it would misreport what was measured."""
+    if not uses_gyro(config):
+        return
+    if isinstance(trial, TrialLog):
+        has_gyro = GyroRate in trial.topics.values()
+    else:
+        has_gyro = trial.counts().get(GyroRate.__name__, 0) > 0
+    if not has_gyro:
+        raise ConfigError(
+            f"{name}: no gyro messages (GyroRate, topic /imu/gyro) but noise.gyro.enabled "
+            "is set; record the trial with a gyro (simulate --gyro) or leave it off"
+        )
+
+
 def _out_dir(out_dir: str | Path) -> Path:
     """The output folder, made now (a user's mistake fails before the replay)."""
     out = Path(out_dir)
@@ -200,15 +219,16 @@ def _build(
     """The source, the localizer's config, the localizer, the pipeline."""
     trial = log if isinstance(log, TrialLog | Dataset) else read_log(log)
     log_path = str(trial.path) if isinstance(trial, TrialLog) else f"{trial.name}"
+    if localizer_config is None:
+        built = configure(LOCALIZERS, localizer, trial.metadata, overrides or {})
+    else:
+        built = Configured(localizer_config)
+    check_gyro(built.config, trial, log_path)
     out = _out_dir(out_dir)
     if controller is not None:
         CONTROLLERS.spec(controller)  # an unknown name fails before the replay
     world = World.from_dict(trial.metadata["world"]) if "world" in trial.metadata else None
     true_landmarks = landmarks.from_metadata(trial.metadata)
-    if localizer_config is None:
-        built = configure(LOCALIZERS, localizer, trial.metadata, overrides or {})
-    else:
-        built = Configured(localizer_config)
     loc = create(
         localizer,
         trial.calibration,
@@ -283,6 +303,7 @@ def _evaluate(r: _Replay):
     gt = rec.groundtruth_trajectory()
     if gt is not None and len(est) > 1:
         metrics.update(M.ate(est, gt))
+        metrics.update(M.heading_errors(est, gt))
         metrics.update(M.rpe(est, gt))
         if estimated is not None:
             metrics["landmark_rmse_m"] = M.landmark_rmse(

@@ -117,6 +117,20 @@ class VelocityOdometry:
     omega: float
 
 
+@dataclass(frozen=True, slots=True)
+class GyroRate:
+    """Yaw rate [rad/s] of the walker body from its gyro: the z-axis angular rate, CCW
+    positive, as the sensor reports it (its bias and scale error included).
+
+    A MEMS gyro's output is low-pass filtered and sampled; the rate is taken as the mean
+    over the interval since the gyro's previous sample, so that the samples, each held
+    over the interval it ends, integrate to the angle turned.
+    """
+
+    t: float
+    rate_rad_s: float
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class LaserScan:
     """Planar range scan in the robot frame; beam i is at angle_min + i·angle_increment.
@@ -208,6 +222,7 @@ Message = (
     | TagDetections
     | RangeBearing
     | VelocityOdometry
+    | GyroRate
     | LaserScan
     | GroundTruthPose
     | Collision
@@ -223,6 +238,7 @@ MESSAGE_TYPES: tuple[type, ...] = (
     TagDetections,
     RangeBearing,
     VelocityOdometry,
+    GyroRate,
     LaserScan,
     GroundTruthPose,
     Collision,

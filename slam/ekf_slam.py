@@ -270,7 +270,7 @@ class EkfSlam(Localizer):
         }
 
     def diagnostics(self) -> dict:
-        notes = dict(self.counts)
+        notes = {**self.counts, **self.odometry.diagnostics()}
         c = self.counts
         absolute = fused_count(c)
         if c["updates"] == 0 and c["new_landmarks"] == 0 and absolute == 0:

@@ -691,7 +691,7 @@ class FastSlam(Localizer):
 
     def diagnostics(self) -> dict:
         self._flush()
-        notes: dict = dict(self.counts)
+        notes: dict = {**self.counts, **self.odometry.diagnostics()}
         notes["version"] = self.config.version
         notes["particles"] = self.n
         notes["landmarks"] = len(self.index)

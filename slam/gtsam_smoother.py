@@ -817,7 +817,7 @@ class GtsamSmoother(Localizer):
         return out
 
     def diagnostics(self) -> dict:
-        notes = dict(self.counts)
+        notes = {**self.counts, **self.odometry.diagnostics()}
         if self.config.scan_matching:
             notes["odometry_sigma_scale"] = [round(float(v), 3) for v in self._odo_scale]
             if self.counts["scan_factors"] + self.counts["loop_closures"] == 0:

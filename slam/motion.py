@@ -17,18 +17,25 @@ var(dθ) = k₃|ds| + k₄|dθ| (`distance_walk`), whatever the timing. The opt-
 brake-aware variant inflates a wheel's variance with its logged brake torque τ:
 σ² += k_brake·(τ/τ_max)·|d|, and can remove an expected under-report (bias) of
 bias_per_full_brake·(τ/τ_max) of the distance (the slip the brake causes).
+
+With a yaw-rate gyro (`MotionNoise.gyro.enabled`, `slam.gyro`), an increment keeps the
+odometry's ds and its variance but takes dθ from the gyro, integrated over the same
+interval and corrected by the online bias and scale estimate; var(dθ) is then the
+gyro's and cov(ds, dθ) = 0 (independent sensors).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
-from hardware.messages import BrakeCommand, EncoderTicks, Message, VelocityOdometry
+from hardware.messages import BrakeCommand, EncoderTicks, GyroRate, Message, VelocityOdometry
+from slam.gyro import GyroFusion, GyroHeading
 
 
 def arc_increment(ds: float, dtheta: float, theta: float) -> tuple[float, float]:
@@ -160,6 +167,8 @@ class MotionNoise:
     distance_walk = (k₁ [m²/m], k₂ [m²/rad], k₃ [rad²/m], k₄ [rad²/rad]), by default
     σ(ds) = 5 cm per metre, σ(dθ) = 0.1 rad per radian turned and 0.077 rad per metre;
     brake_aware: inflate (and optionally de-bias) a braked wheel.
+    gyro: the turn from a yaw-rate gyro, its bias estimated online (`slam.gyro`); off by
+    default.
     """
 
     wheel_m: float = 0.0025
@@ -171,11 +180,21 @@ class MotionNoise:
     brake_aware: bool = False
     brake_wheel_m: float = 0.02
     bias_per_full_brake: float = 0.0
+    gyro: GyroFusion = field(default_factory=GyroFusion)
 
     def __post_init__(self) -> None:
         coerce(self, velocity_model=VelocityModel)
         if len(self.distance_walk) != 4 or min(self.distance_walk) < 0:
             raise ValueError(f"distance_walk must be four values >= 0, got {self.distance_walk}")
+
+
+def uses_gyro(config: object) -> bool:
+    """Whether a localizer's config asks for the gyro: a MotionNoise among its fields with
+    gyro fusion enabled."""
+    return dataclasses.is_dataclass(config) and any(
+        isinstance(value, MotionNoise) and value.gyro.enabled
+        for value in (getattr(config, f.name) for f in dataclasses.fields(config))
+    )
 
 
 @dataclass(frozen=True)
@@ -198,6 +217,11 @@ class OdometryModel:
         self._ticks: EncoderTicks | None = None
         self._velocity: VelocityOdometry | None = None
         self._brake_level = (0.0, 0.0)
+        self.gyro = (
+            GyroHeading(self.noise.gyro, calibration.metres_per_count / calibration.track_m)
+            if self.noise.gyro.enabled
+            else None
+        )
 
     @property
     def has_odometry(self) -> bool:
@@ -208,10 +232,12 @@ class OdometryModel:
         """The motion since the previous odometry message, or None (first or other msg)."""
         if isinstance(msg, EncoderTicks):
             prev, self._ticks = self._ticks, msg
-            return None if prev is None else self._from_ticks(prev, msg)
+            inc = None if prev is None else self._from_ticks(prev, msg)
+            return self._with_gyro(prev or msg, msg, inc)
         if isinstance(msg, VelocityOdometry):
             prev, self._velocity = self._velocity, msg
-            return None if prev is None else self._from_velocity(prev, msg)
+            inc = None if prev is None else self._from_velocity(prev, msg)
+            return self._with_gyro(prev or msg, msg, inc)
         if isinstance(msg, BrakeCommand):
             b = self.cal.brake
             span = b.torque_max_nm - b.torque_off_nm
@@ -219,7 +245,37 @@ class OdometryModel:
                 min(max((msg.left_nm - b.torque_off_nm) / span, 0.0), 1.0),
                 min(max((msg.right_nm - b.torque_off_nm) / span, 0.0), 1.0),
             )
+            if self.gyro is not None:
+                self.gyro.brakes(msg.t, self._brake_level)
+        elif isinstance(msg, GyroRate) and self.gyro is not None:
+            self.gyro.add(msg)
         return None
+
+    def _with_gyro(self, prev: Message, msg: Message, inc: Increment | None) -> Increment | None:
+        """The increment with its turn from the gyro when gyro fusion is on and the gyro
+        covers (prev.t, msg.t]; else as it is (`slam.gyro.GyroHeading.turn`, which also
+        gets the odometry's turn and its variance without braking for the bias)."""
+        if self.gyro is None:
+            return inc
+        if inc is None:
+            self.gyro.turn(prev.t, msg.t, 0.0, 0.0)  # the start, or no time passed
+            return None
+        if isinstance(msg, EncoderTicks) and isinstance(prev, EncoderTicks):
+            counts = abs(msg.left - prev.left) + abs(msg.right - prev.right)
+            rolled = counts * self.cal.metres_per_count
+            var = self.noise.gyro.encoder_wheel_m * rolled / self.cal.track_m**2
+        else:
+            var = float(inc.cov[1, 1])
+        fused = self.gyro.turn(prev.t, msg.t, inc.dtheta, var)
+        if fused is None:
+            return inc
+        dtheta, var = fused
+        cov = np.array([[float(inc.cov[0, 0]), 0.0], [0.0, var]])
+        return Increment(inc.t, inc.dt, inc.ds, dtheta, cov)
+
+    def diagnostics(self) -> dict:
+        """The gyro's bias and scale estimates, windows, fallbacks (empty without it)."""
+        return {} if self.gyro is None else {"gyro": self.gyro.diagnostics()}
 
     def _from_ticks(self, prev: EncoderTicks, msg: EncoderTicks) -> Increment:
         n = self.noise

@@ -702,7 +702,7 @@ class ParticleFilter(Localizer):
         return self._path_cache[1]
 
     def diagnostics(self) -> dict:
-        notes = dict(self.counts)
+        notes = {**self.counts, **self.odometry.diagnostics()}
         notes["particles"] = len(self.particles)
         c = self.counts
         absolute = fused_count(c)

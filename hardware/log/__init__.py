@@ -43,6 +43,7 @@ command stream). A topic holds a single message type.
     /tags/detections         TagDetections      json / walker.TagDetections
     /range_bearing           RangeBearing       json / walker.RangeBearing
     /odometry/velocity       VelocityOdometry   json / walker.VelocityOdometry
+    /imu/gyro                GyroRate           json / walker.GyroRate
     /scan                    LaserScan          protobuf / foxglove.LaserScan
     /scan/exact                companion        json / walker.LaserScanExact
     /groundtruth/pose        GroundTruthPose    protobuf / foxglove.PoseInFrame
@@ -81,6 +82,9 @@ JSON integers. Units are SI. Schemas (all fields required):
     walker.RangeBearing       t [s], landmark_id [int], range_m [m],
                               bearing_rad [rad, CCW from the robot heading]
     walker.VelocityOdometry   t [s], v [m/s forward], omega [rad/s yaw rate]
+    walker.GyroRate           t [s], rate_rad_s [rad/s: the gyro's z rate, CCW positive, raw
+                              (its bias and scale error included), the mean over the
+                              interval since its previous sample]
     walker.Collision          t [s], kind ["front" | "side" | "rear-wheel"], obstacle [str],
                               x, y [m, contact point in the world]
     walker.DeviceEvent        t [s], device [str], event [str: connected | disconnected |

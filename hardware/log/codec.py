@@ -41,6 +41,7 @@ from hardware.messages import (
     DeviceEvent,
     EncoderTicks,
     GroundTruthPose,
+    GyroRate,
     LaserScan,
     Message,
     PositionFix,
@@ -324,6 +325,14 @@ CODECS: dict[type, Codec] = {
             VelocityOdometry,
             "/odometry/velocity",
             {"v": "forward speed [m/s]", "omega": "yaw rate [rad/s]"},
+        ),
+        flat(
+            GyroRate,
+            "/imu/gyro",
+            {
+                "rate_rad_s": "yaw rate of the walker body [rad/s], z axis, CCW positive, "
+                "as the gyro reports it (mean over the interval since its previous sample)"
+            },
         ),
         flat(
             Collision,

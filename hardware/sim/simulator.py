@@ -26,11 +26,13 @@ from hardware.messages import (
     DepthFrame,
     EncoderTicks,
     GroundTruthPose,
+    GyroRate,
     Message,
     TagDetections,
 )
 from hardware.sim.depth_camera import DepthCameraConfig, SimDepthCamera
 from hardware.sim.dynamics import Brakes, WalkerParams, WalkerState, step
+from hardware.sim.gyro import GyroSimConfig, SimGyro
 from hardware.sim.slip import (
     Encoders,
     SlipModel,
@@ -70,6 +72,8 @@ class SimConfig:
     plus the *_error_m values (the thesis code used a 203 mm wheel; it measures 204 mm).
     user_profile: this trial's user (route offset and wander, push, impairment; see
     `UserProfile`) applied to `user` and the world's route; None: `user` on the route.
+    gyro: the simulated yaw-rate gyro (`hardware.sim.gyro`), off by default; its draws
+    come from a seed stream of their own, so switching it on changes no other sensor.
     """
 
     surface: str | float = "dusty"
@@ -89,6 +93,7 @@ class SimConfig:
     user_profile: UserProfile | None = None
     depth: DepthCameraConfig = field(default_factory=DepthCameraConfig)
     tags: TagCameraConfig = field(default_factory=TagCameraConfig)
+    gyro: GyroSimConfig = field(default_factory=GyroSimConfig)
 
     def __post_init__(self) -> None:
         surface_coefficient(self.surface)
@@ -100,6 +105,11 @@ class SimConfig:
                 raise ValueError(
                     f"{name}={rate} must divide physics_rate_hz={self.physics_rate_hz}"
                 )
+        if self.physics_rate_hz % self.gyro.rate_hz:
+            raise ValueError(
+                f"gyro.rate_hz={self.gyro.rate_hz} must divide physics_rate_hz="
+                f"{self.physics_rate_hz}"
+            )
         if self.physics_rate_hz < 200:
             raise ValueError("physics_rate_hz must be >= 200")
 
@@ -131,8 +141,11 @@ class Simulator:
         self.world = world
         self.config = config
         self.calibration = config.calibration()
-        seeds = np.random.SeedSequence(config.seed).spawn(4)
-        rng_slip, rng_user, rng_depth, rng_tags = (np.random.default_rng(s) for s in seeds)
+        # one stream per part; the gyro's is the fifth, so the first four are as before
+        seeds = np.random.SeedSequence(config.seed).spawn(5)
+        rng_slip, rng_user, rng_depth, rng_tags, rng_gyro = (
+            np.random.default_rng(s) for s in seeds
+        )
         w = config.walker
         x0, y0, th0 = world.start_pose
         self.state = WalkerState(x=x0, y=y0, phi=th0)
@@ -149,6 +162,7 @@ class Simulator:
         self.user = user
         self.depth_camera = SimDepthCamera(world, self.calibration, config.depth, rng_depth)
         self.tag_camera = SimTagCamera(world, self.calibration, config.tags, rng_tags)
+        self.gyro = SimGyro(config.gyro, rng_gyro) if config.gyro.enabled else None
         self.dt = 1.0 / config.physics_rate_hz
         self.steps = 0
         self._started = False  # the sensors at t = 0 were returned
@@ -156,6 +170,7 @@ class Simulator:
             name: config.physics_rate_hz // getattr(config, f"{name}_rate_hz")
             for name in ("encoder", "depth", "tag", "groundtruth")
         }
+        self._every["gyro"] = config.physics_rate_hz // config.gyro.rate_hz
         self._last_contact: dict[str, float] = {}
         # Distance the walker may still move before it could touch anything.
         self._free_travel_m = 0.0
@@ -172,12 +187,21 @@ class Simulator:
     @property
     def metadata(self) -> dict[str, Any]:
         """The world with its true obstacles and tags, the simulation config, and the
-        odometry noise of the simulated encoders that the trial proposes to localizers."""
-        return {
+        odometry noise of the simulated encoders that the trial proposes to localizers;
+        with the gyro, its drawn turn-on bias and scale error ("gyro": the truth an
+        estimate of them is scored against)."""
+        meta = {
             "world": self.world.to_dict(),
             "sim": self.config.to_dict(),
             PROPOSED_SETTINGS: proposed_localizer_settings(self.config.surface),
         }
+        if self.gyro is not None:
+            meta["gyro"] = {
+                "part": "InvenSense MPU-6050 (simulated)",
+                "turn_on_bias_rad_s": self.gyro.turn_on_bias,
+                "scale_error": self.gyro.scale_error,
+            }
+        return meta
 
     def pose(self) -> np.ndarray:
         return np.array([self.state.x, self.state.y, self.state.phi])
@@ -219,8 +243,11 @@ class Simulator:
         self.brakes.step(dt)
         wl, wr = s.wheel_speeds(w.half_track_m)
         f_bl, f_br = self.brakes.ground_forces(wl, wr)
+        phi = s.phi
         step(s, w, handle_l, handle_r, f_bl, f_br, dt)
         self.steps += 1
+        if self.gyro is not None:
+            self.gyro.turn(math.remainder(s.phi - phi, 2.0 * math.pi), dt)
         wl, wr = s.wheel_speeds(w.half_track_m)
         self.last_slip = self.slip.step(dt, (f_bl, f_br))
         self.encoders.roll(wl * dt, wr * dt, self.last_slip)
@@ -304,6 +331,10 @@ class Simulator:
         if first or k % e["groundtruth"] == 0:
             s = self.state
             out.append(GroundTruthPose(t, s.x, s.y, s.phi))
+        # the gyro before the encoders of the same instant: a localizer integrates the
+        # rate up to the ticks' time
+        if self.gyro is not None and (first or k % e["gyro"] == 0):
+            out.append(GyroRate(t, self.gyro.sample()))
         if first or k % e["encoder"] == 0:
             left, right = self.encoders.counts()
             out.append(EncoderTicks(t, left, right))

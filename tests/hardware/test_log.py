@@ -44,6 +44,7 @@ from hardware.messages import (
     DepthFrame,
     EncoderTicks,
     GroundTruthPose,
+    GyroRate,
     LaserScan,
     RangeBearing,
     TagDetection,
@@ -167,6 +168,36 @@ def test_custom_topic_keeps_streams_apart(tmp_path: Path) -> None:
     }
     assert [m.left_nm for m in log.messages(["/brakes/replayed"])] == [3.0]
     assert [type(m) for m in replay(path, topics=["/d2"])] == [DepthFrame]
+
+
+def test_gyro_rates_round_trip_exactly_on_their_json_channel(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    rates = [0.0, -0.0, 1 / 3, -2.5e-7, math.pi, math.inf, -math.inf, math.nan]
+    rates += list(rng.normal(0.0, 0.5, 50))
+    msgs = [GyroRate(0.01 * i + 1e-9 / 3, r) for i, r in enumerate(rates)]
+    msgs.insert(3, EncoderTicks(0.025, 4, -5))  # interleaved with another stream
+    path = tmp_path / "gyro.mcap"
+    write_log(path, msgs)
+    log = read_log(path)
+    assert log.topics == {"/imu/gyro": GyroRate, "/encoders": EncoderTicks}
+    got = list(log.messages())
+    assert len(got) == len(msgs) == 59
+    for a, b in zip(msgs, got, strict=True):
+        assert_same(a, b)
+    with open(path, "rb") as f:  # a plain MCAP reader sees the JSON channel and schema
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        (channel,) = [c for c in summary.channels.values() if c.topic == "/imu/gyro"]
+        schema = summary.schemas[channel.schema_id]
+        assert (schema.name, schema.encoding, channel.message_encoding) == (
+            "walker.GyroRate",
+            "jsonschema",
+            "json",
+        )
+        assert json.loads(schema.data)["required"] == ["t", "rate_rad_s"]
+        first = next(m for _, c, m in reader.iter_messages(topics=["/imu/gyro"]))
+        assert json.loads(first.data) == {"t": 1e-9 / 3, "rate_rad_s": 0.0}
 
 
 def test_metadata_calibration_and_attachments_round_trip(tmp_path: Path) -> None:
