@@ -65,17 +65,24 @@ def calibrate(
 
 
 def _how(res) -> str:
-    """What the estimate was made from, and how."""
+    """What the estimate was made from and how, and what the assumed geometry did wrong."""
+    from slam.umbmark import systematic_errors
+
     laps = f"{res.before[1].laps} counter-clockwise and {res.before[-1].laps} clockwise laps"
     if res.umbmark is None:
-        return f"{laps}; least squares against the ground truth"
-    e = res.umbmark.first_step
-    side = f"a {res.side_m:g} m square" if res.side_m else "no --side: mean diameter kept"
-    scale = "" if e.scale is None else f", distances short by {100 * (e.scale - 1):+.2f} %"
+        how = "least squares against the ground truth"
+    else:
+        side = f"a {res.side_m:g} m square" if res.side_m else "no --side: mean diameter kept"
+        how = f"UMBmark closed form ({side}), iterated {res.umbmark.iterations}×"
+    e = systematic_errors(res.assumed, res.estimate, 1.0)
+    turn, drift = math.degrees(e.alpha_rad), math.degrees(e.beta_rad)
+    short = 100 * (1 - 1 / e.scale)
     return (
-        f"{laps}; UMBmark closed form ({side}), iterated {res.umbmark.iterations}×. "
-        f"Before: each 90° corner over-rotated {math.degrees(e.alpha_rad):+.2f}° (track, E_b), "
-        f"each side curved {math.degrees(e.beta_rad):+.2f}° (wheel ratio, E_d){scale}"
+        f"{laps}; {how}. With the assumed wheels and track the odometry "
+        f"{'over' if turn >= 0 else 'under'}-rotates every 90° turn by {abs(turn):.2f}° "
+        f"(track, E_b), turns {abs(drift):.3f}° {'left' if drift >= 0 else 'right'} per metre "
+        f"(wheel ratio, E_d) and measures distances {abs(short):.2f} % "
+        f"{'short' if short >= 0 else 'long'} (mean diameter)"
     )
 
 

@@ -80,6 +80,21 @@ class UmbmarkErrors:
         return geometry.scaled(c_left, c_right, track)
 
 
+def systematic_errors(assumed: WheelGeometry, true: WheelGeometry, side_m: float) -> UmbmarkErrors:
+    """The errors odometry with the `assumed` geometry makes on a walker of the `true`
+    one: the over-rotation per 90° turn, the drift per `side_m` of path and the scale
+    (the inverse of `UmbmarkErrors.corrected`)."""
+    inv_left = assumed.left_diameter_m / true.left_diameter_m  # 1 / c_L
+    inv_right = assumed.right_diameter_m / true.right_diameter_m
+    mean = 0.5 * (inv_left + inv_right)
+    return UmbmarkErrors(
+        alpha_rad=0.5 * math.pi * (true.track_m / assumed.track_m * mean - 1.0),
+        beta_rad=side_m * (inv_right - inv_left) / assumed.track_m,
+        scale=1.0 / mean,
+        side_m=side_m,
+    )
+
+
 def centre_of_gravity(runs: Sequence[SquareRun], direction: int) -> np.ndarray:
     """Mean closure (x, y, φ) of the laps in one direction over all runs."""
     errors = [c.error for r in runs for c in r.closures_of(direction)]

@@ -5,7 +5,8 @@ taken by replay, compare and simulate, and what that does to dead reckoning.
 
 The simulated walker has the dimension table's 0.68 m track and a right wheel 1 % larger
 than its left (mean 204 mm), while its software believes the thesis code's 0.64 m and
-equal 203 mm wheels: 5.6° of over-rotation per corner and 2.7° of drift per side.
+equal 203 mm wheels: its odometry over-rotates every 90° turn by 5.1°, turns 3.5° right
+along every 4 m side and measures distances 0.5 % short.
 """
 
 import json

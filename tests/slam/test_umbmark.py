@@ -10,10 +10,12 @@ from hardware.errors import CalibrationError
 from slam.square_run import analyse
 from slam.umbmark import (
     CountsRun,
+    UmbmarkErrors,
     analyse_runs,
     centre_of_gravity,
     closed_form,
     fit_umbmark,
+    systematic_errors,
 )
 from slam.wheel_odometry import WheelGeometry, dead_reckon
 from tests.slam.square_laps import ASSUMED, CPR, TRUE, counts, square_steps
@@ -116,3 +118,31 @@ def test_a_path_that_is_no_square_has_no_laps():
     path = dead_reckon(counts(ds, dth, ASSUMED), ASSUMED, CPR)
     assert not analyse(path, np.arange(len(path)), SIDE).closures
     assert len(analyse(path, np.arange(len(path)), 2.5).closures) == 7
+
+
+def test_systematic_errors_undo_the_correction():
+    """The errors a geometry makes against the one its correction gives are the errors."""
+    errors = UmbmarkErrors(alpha_rad=0.07, beta_rad=-0.03, scale=1.005, side_m=SIDE)
+    corrected = errors.corrected(ASSUMED)
+    back = systematic_errors(ASSUMED, corrected, SIDE)
+    assert back.alpha_rad == pytest.approx(0.07, rel=1e-12)
+    assert back.beta_rad == pytest.approx(-0.03, rel=1e-12)
+    assert back.scale == pytest.approx(1.005, rel=1e-12)
+    # the thesis walker's software on the true walker: 5.6 deg per turn, 1 % diameters
+    truth = systematic_errors(ASSUMED, TRUE, SIDE)
+    assert math.degrees(truth.alpha_rad) == pytest.approx(90 * (0.68 / 0.64 / truth.scale - 1))
+
+
+def test_one_run_both_ways_with_a_turn_on_the_spot():
+    """The procedure on the walker: laps counter-clockwise, stop on the mark, turn the
+    walker round on the spot (a 180° turn without travel: no corner of a square), laps
+    clockwise round the same square, all in one log."""
+    ccw, cw = square_steps(SIDE, 3, 1), square_steps(SIDE, 3, -1)
+    ds = np.concatenate([ccw[0], np.zeros(100), cw[0]])
+    dth = np.concatenate([ccw[1], np.full(100, math.pi / 100), cw[1]])
+    c = counts(ds, dth, TRUE)
+    fit = fit_umbmark([CountsRun(np.arange(len(c)) * 0.02, c)], ASSUMED, CPR, SIDE)
+    (run,) = fit.before
+    assert len(run.closures_of(1)) == len(run.closures_of(-1)) == 7
+    assert fit.geometry.track_m == pytest.approx(TRUE.track_m, rel=1e-7)
+    assert fit.geometry.diameter_ratio == pytest.approx(TRUE.diameter_ratio, rel=1e-7)
