@@ -11,7 +11,7 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from experiments import live_commands, study_commands
+from experiments import calibrate_commands, live_commands, study_commands
 from experiments.cli_common import (
     console,
     err_console,
@@ -91,6 +91,13 @@ def simulate(
             "/imu/gyro stream; the other sensors are as without it",
         ),
     ] = False,
+    calibration: Annotated[
+        Path | None,
+        typer.Option(
+            help="walker calibration JSON whose wheel diameters and track the walker's "
+            "software believes (the simulated walker stays the true one)"
+        ),
+    ] = None,
 ) -> None:
     """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log."""
     from dataclasses import replace
@@ -101,6 +108,7 @@ def simulate(
     from hardware.sim.simulator import SimConfig
 
     width, height = parse_size(depth_size)
+    override = _calibration_override(calibration, [SimConfig().calibration()])
     sim_config = checked(
         lambda: replace(
             SimConfig(),
@@ -125,6 +133,7 @@ def simulate(
             seed=seed,
             duration_s=duration,
             progress=update,
+            calibration=override,
         )
     c = res.collisions
     console.print(
@@ -238,6 +247,13 @@ _ReplayFoxgloveOpt = Annotated[
 _ReplayLingerOpt = Annotated[
     float | None, typer.Option(help="--foxglove: serve this long after the end [s]")
 ]
+CalibrationOpt = Annotated[
+    Path | None,
+    typer.Option(
+        help="walker calibration JSON (e.g. from walkerslam calibrate) whose wheel diameters "
+        "and track replace the log's for the odometry"
+    ),
+]
 
 
 @app.command()
@@ -260,6 +276,7 @@ def replay(
     speed: Annotated[float, typer.Option(help="--foxglove: replay speed, × real time")] = 1.0,
     fast: Annotated[bool, typer.Option("--fast", help="--foxglove: do not pace")] = False,
     linger: _ReplayLingerOpt = None,
+    calibration: CalibrationOpt = None,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
@@ -282,6 +299,7 @@ def replay(
     trial, total = _open_source(
         log, format, _dataset_options(robot, relations, time_offset, dataset_option)
     )
+    override = _calibration_override(calibration, [trial.calibration])
     start: list[float] = []
 
     def elapsed(t: float) -> float:
@@ -305,6 +323,7 @@ def replay(
                 localizer_overrides=overrides,
                 mapper_config=mapper_config,
                 controller=controller,
+                calibration=override,
                 progress=lambda t: update(elapsed(t)),
                 phase=update.phase,
                 observers=(
@@ -337,6 +356,18 @@ def _open_source(log: Path, format: str | None, dataset_opts: dict):
     trial = read_log(log)
     t0, t1 = trial.time_range if trial.message_count else (0.0, 0.0)
     return trial, t1 - t0
+
+
+def _calibration_override(path: Path | None, calibrations: list):
+    """--calibration's file, checked against the sources' calibrations (their encoders)
+    before any work; None without the option."""
+    from experiments.calibration_override import CalibrationOverride
+
+    override = CalibrationOverride.load(path)
+    if override is not None:
+        for cal in calibrations:
+            override.apply(cal)
+    return override
 
 
 def _replay_view(trial, port: int, speed: float):
@@ -475,6 +506,7 @@ def compare(
     time_offset: TimeOffsetOpt = None,
     set_: SetOpt = None,
     dataset_option: DatasetOpt = None,
+    calibration: CalibrationOpt = None,
 ) -> None:
     """Run localizers on logs; write results.csv, results.db, report.md; print the table.
 
@@ -484,7 +516,10 @@ def compare(
 
     names = parse_localizers(localizers)
     overrides = _localizer_overrides(set_, names)
-    sources = _compare_sources(logs, format, robot, relations, time_offset, dataset_option)
+    sources, calibrations = _compare_sources(
+        logs, format, robot, relations, time_offset, dataset_option
+    )
+    override = _calibration_override(calibration, calibrations)
     if seeds < 1:
         raise ConfigError(f"--seeds must be >= 1, got {seeds}")
     with Progress(
@@ -502,15 +537,17 @@ def compare(
             out,
             progress=lambda what: bar.update(task, description=what),
             overrides=overrides,
+            calibration=override,
         )
     console.print(_summary_table(res.summary))
     console.print("files: " + ", ".join(str(p) for p in res.files.values()), highlight=False)
 
 
-def _compare_sources(logs, format, robot, relations, time_offset, dataset_option) -> list:
-    """compare's sources: trial log paths (each read once to fail fast on a bad file), or
-    the datasets opened for each log and --robot."""
+def _compare_sources(logs, format, robot, relations, time_offset, dataset_option):
+    """compare's sources — trial log paths (each read once to fail fast on a bad file), or
+    the datasets opened for each log and --robot — and their calibrations."""
     sources: list = []
+    calibrations: list = []
     if format is not None:
         from hardware.datasets import open_dataset
 
@@ -526,15 +563,16 @@ def _compare_sources(logs, format, robot, relations, time_offset, dataset_option
             for r in robots:
                 opts = _dataset_options(r, relations, time_offset, dataset_option)
                 sources.append(open_dataset(format, log, **opts))
+                calibrations.append(sources[-1].calibration)
     else:
         if robot is not None or relations is not None or time_offset is not None or dataset_option:
             raise ConfigError(DATASET_OPTIONS_NEED_FORMAT)
         from hardware.log import read_log
 
         for log in logs:
-            read_log(log)  # fail fast on a bad file, before any run
+            calibrations.append(read_log(log).calibration)  # a bad file fails before any run
         sources = list(logs)
-    return sources
+    return sources, calibrations
 
 
 def _summary_table(summary: list[dict]) -> Table:
@@ -687,6 +725,7 @@ def info(log: Annotated[Path, typer.Argument(help="trial log (.mcap)")]) -> None
 
 study_commands.register(app)  # course-study, corner-study
 live_commands.register(app)  # live, board, calibrate-camera
+calibrate_commands.register(app)  # calibrate
 
 
 def main(argv: list[str] | None = None) -> int:

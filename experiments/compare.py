@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from experiments.calibration_override import CalibrationOverride
 from experiments.config import configure
 from experiments.run import MAP_BAND_M, ReplayResult, check_gyro, replay_log
 from hardware.datasets import Dataset
@@ -121,11 +122,13 @@ def compare(
     out_dir: str | Path,
     progress: Callable[[str], None] | None = None,
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
+    calibration: CalibrationOverride | None = None,
 ) -> CompareResult:
     """Every localizer on every source; `overrides` = {localizer: {field path: value}}
     changes fields of a localizer's default config, after the settings the source
     proposes (its metadata "localizer_settings", e.g. a dataset's fitted noise levels):
-    `experiments.config.configure`."""
+    `experiments.config.configure`. calibration: a file whose wheel diameters and track
+    replace every source's (`experiments.calibration_override`)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.db").unlink(missing_ok=True)  # this comparison's runs only, like the CSV
@@ -156,6 +159,7 @@ def compare(
                     figures=False,
                     reference_map=False,
                     drag_metrics=False,
+                    calibration=calibration,
                 )
                 row = _row(name, loc, seed, res)
                 rows.append(row)

@@ -39,10 +39,11 @@ import numpy as np
 
 from control.base import CONTROLLERS
 from control.safety import SafeController
+from experiments.calibration_override import CalibrationOverride, applied
 from experiments.config import configure
 from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
 from hardware.arduino import ArduinoBoard, BoardConfig, BoardStats
-from hardware.calibration import WalkerCalibration, load_calibration
+from hardware.calibration import WalkerCalibration
 from hardware.clock import HostClock
 from hardware.errors import ConfigError
 from hardware.live import LiveSources
@@ -232,6 +233,8 @@ class LiveRun:
         self.view_url: str | None = None  # the live view's address (foxglove_port)
         # what a run is made of (built by run())
         self.cal = WalkerCalibration()
+        self.calibration_file: CalibrationOverride | None = None  # --calibration
+        self.calibration_override: dict[str, Any] | None = None  # its record, with --sim
         self.devices: list[tuple[str, Any]] = []
         self.metadata: dict[str, Any] = {}
         self.board: ArduinoBoard | None = None
@@ -335,8 +338,10 @@ class LiveRun:
             self._world_dir = None
 
     def _calibration(self) -> WalkerCalibration:
-        opts = self.options
-        cal = load_calibration(opts.calibration) if opts.calibration else WalkerCalibration()
+        """The walker's calibration: --calibration's file (or the thesis walker's), with
+        the tag camera's calibration."""
+        opts, file = self.options, self.calibration_file
+        cal = file.calibration if file is not None else WalkerCalibration()
         if opts.camera_yaml:
             from hardware.camera_calibration import load_camera_yaml, with_tag_camera
 
@@ -392,6 +397,7 @@ class LiveRun:
         configure(LOCALIZERS, opts.localizer, None, opts.localizer_overrides)
         if opts.sim is None and not opts.serial:
             raise LiveError("live needs --serial PORT (or --sim)")
+        self.calibration_file = CalibrationOverride.load(opts.calibration)
         return configure(CONTROLLERS, opts.controller, None, opts.controller_overrides).config
 
     def _open_devices(self) -> None:
@@ -406,7 +412,10 @@ class LiveRun:
             from hardware.sim.stream import SimSensors
 
             sensors = SimSensors(sock, self.clock)
-            self.cal = sensors.calibration
+            # the simulated walker's software calibration, with --calibration's odometry
+            self.cal, self.calibration_override = applied(
+                self.calibration_file, sensors.calibration
+            )
             self.devices.append(("sim", sensors))
         else:
             self.cal = self._calibration()
@@ -576,6 +585,8 @@ class LiveRun:
                 "camera": opts.camera,
                 "camera_yaml": opts.camera_yaml,
             },
+            "calibration_file": opts.calibration,
+            "calibration_override": self.calibration_override,
             "sim": asdict(opts.sim) if opts.sim is not None else None,
         }
 

@@ -137,7 +137,12 @@ _CameraFpsOpt = Annotated[
     typer.Option(help="pace a tag-camera video file or image folder to this rate"),
 ]
 _CalibrationOpt = Annotated[
-    Path | None, typer.Option(help="walker calibration JSON (default: the thesis walker)")
+    Path | None,
+    typer.Option(
+        help="walker calibration JSON (default: the thesis walker; e.g. from walkerslam "
+        "calibrate); with --sim its wheel diameters and track replace the simulated "
+        "walker's software calibration"
+    ),
 ]
 _RecordOpt = Annotated[
     Path | None, typer.Option(help="record every stream and command to this .mcap")

@@ -20,10 +20,12 @@ import numpy as np
 from control.base import CONTROLLERS
 from experiments import drag
 from experiments import metrics as M
+from experiments.calibration_override import CalibrationOverride, applied
 from experiments.config import Configured, configure
 from experiments.drag import DragConfig
 from experiments.pipeline import LoopConfig, Pipeline
 from experiments.simulation import VERSION, RunSpec, simulate
+from hardware.calibration import WalkerCalibration
 from hardware.datasets import Dataset
 from hardware.errors import ConfigError, UnknownNameError
 from hardware.log import TrialLog, read_log
@@ -67,9 +69,11 @@ def simulate_trial(
     sim_config: SimConfig | None = None,
     loop: LoopConfig | None = None,
     progress: Callable[[float], None] | None = None,
+    calibration: CalibrationOverride | None = None,
 ) -> SimulateResult:
     """Simulate `course` in closed loop and record everything to an MCAP trial log
-    (`experiments.simulation.simulate`, the studies' trials' implementation too)."""
+    (`experiments.simulation.simulate`, the studies' trials' implementation too);
+    calibration: a file whose wheel diameters and track the software believes."""
     spec = RunSpec(
         course,
         controller,
@@ -80,7 +84,9 @@ def simulate_trial(
         seed_localizer=False,
         log_path=str(out_path),
     )
-    run = simulate(spec, sim_config=sim_config, loop=loop, progress=progress)
+    run = simulate(
+        spec, sim_config=sim_config, loop=loop, progress=progress, calibration=calibration
+    )
     return SimulateResult(
         Path(out_path),
         run.sim.t,
@@ -114,6 +120,8 @@ class _Replay:
     out: Path
     localizer: str
     built: Configured
+    calibration: WalkerCalibration  # the log's, or with --calibration's odometry
+    calibration_override: dict[str, Any] | None
     pipeline: Pipeline
     world: World | None
     true_landmarks: dict | None
@@ -144,6 +152,7 @@ def replay_log(
     progress: Callable[[float], None] | None = None,
     phase: Callable[[str], None] | None = None,
     observers: Callable[[Pipeline], Sequence[Any]] | None = None,
+    calibration: CalibrationOverride | None = None,
 ) -> ReplayResult:
     """Run a recorded trial (a log path, an opened log or an opened dataset) through a
     localizer and the mapper; write estimates, maps, metrics against ground truth (when
@@ -169,10 +178,12 @@ def replay_log(
     (`FoxgloveView.observer`); their time is left out of the real-time factor too.
     progress(t): each message's time; phase(text): what happens after the messages
     (metrics, figures), for a progress display.
+    calibration: a calibration file whose wheel diameters and track replace the log's
+    (`experiments.calibration_override`; recorded in config.json).
     """
     r = _build(
         log, out_dir, localizer, localizer_config, localizer_overrides, mapper_config,
-        reference_map, controller, drag_config,
+        reference_map, controller, drag_config, calibration,
     )  # fmt: skip
     _attach_evaluation(r, drag_metrics, observers)
     _run(r, progress)
@@ -214,10 +225,11 @@ def _out_dir(out_dir: str | Path) -> Path:
 
 def _build(
     log, out_dir, localizer, localizer_config, overrides, mapper_config, reference_map,
-    controller, drag_config,
+    controller, drag_config, calibration_file,
 ) -> _Replay:  # fmt: skip
-    """The source, the localizer's config, the localizer, the pipeline."""
+    """The source, the calibration, the localizer's config, the localizer, the pipeline."""
     trial = log if isinstance(log, TrialLog | Dataset) else read_log(log)
+    cal, override = applied(calibration_file, trial.calibration)
     log_path = str(trial.path) if isinstance(trial, TrialLog) else f"{trial.name}"
     if localizer_config is None:
         built = configure(LOCALIZERS, localizer, trial.metadata, overrides or {})
@@ -231,23 +243,23 @@ def _build(
     true_landmarks = landmarks.from_metadata(trial.metadata)
     loc = create(
         localizer,
-        trial.calibration,
+        cal,
         built.config,
         initial_pose=trial.metadata.get("config", {}).get("initial_pose"),
         landmark_map=true_landmarks,
     )
-    pipeline = Pipeline(loc, trial.calibration, mapper_config, reference_map=reference_map)
+    pipeline = Pipeline(loc, cal, mapper_config, reference_map=reference_map)
     outlines = [p for _, p in world.footprint_polygons(*MAP_BAND_M)] if world is not None else []
     return _Replay(
-        trial, log_path, out, localizer, built, pipeline, world, true_landmarks, outlines,
-        drag_config or DragConfig(), controller,
+        trial, log_path, out, localizer, built, cal, override, pipeline, world, true_landmarks,
+        outlines, drag_config or DragConfig(), controller,
     )  # fmt: skip
 
 
 def _attach_evaluation(r: _Replay, drag_metrics: bool, observers) -> None:
     """What watches the replay's messages: the drag metrics, a recomputing controller,
     the same controller at the true pose (over-steer), the caller's observers."""
-    pipeline, cal = r.pipeline, r.trial.calibration
+    pipeline, cal = r.pipeline, r.calibration
     truth = drag.TruthTracker()
     if r.world is not None and drag_metrics:
         r.phantom = drag.PhantomSeries(pipeline, r.outlines, r.drag_cfg)
@@ -279,7 +291,7 @@ def _run(r: _Replay, progress) -> None:
 def _evaluate(r: _Replay):
     """The metrics (metrics.json) and the ground-truth trajectory (when known); warns
     about dropped messages and a localizer's fallback."""
-    pipeline, cal = r.pipeline, r.trial.calibration
+    pipeline, cal = r.pipeline, r.calibration
     loc, rec = pipeline.localizer, pipeline.recorded
     duration = rec.t_last - rec.t_first if rec.counts else 0.0
     runtime = r.runtime_s
@@ -386,6 +398,7 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
         "source_localizer_settings": r.built.proposed,
         "source_localizer_settings_skipped": r.built.skipped,
         "localizer_overrides": r.built.overrides,
+        "calibration_override": r.calibration_override,
         "mapper_config": _jsonable(pipeline.mapper.config),
         "controller": r.controller,
         "drag_config": asdict(r.drag_cfg),

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from control.base import CONTROLLERS
+from experiments.calibration_override import CalibrationOverride, applied
 from experiments.config import checked, configure
 from experiments.pipeline import FeedOrder, LoopConfig, Pipeline, run_closed_loop
 from hardware.log import LogWriter
@@ -104,7 +105,9 @@ def _localizer_config(spec: RunSpec, sim: Simulator) -> Any:
     return cfg
 
 
-def _run_config(spec: RunSpec, world, ctl_cfg, loc, loop, sim_cfg, command: str) -> dict:
+def _run_config(
+    spec: RunSpec, world, ctl_cfg, loc, loop, sim_cfg, command: str, override: dict | None
+) -> dict:
     return {
         "command": command,
         "walker_slam_version": VERSION,
@@ -123,6 +126,7 @@ def _run_config(spec: RunSpec, world, ctl_cfg, loc, loop, sim_cfg, command: str)
         ),
         "initial_speed_mps": spec.initial_speed_mps,
         "labels": dict(spec.labels),
+        **({"calibration_override": override} if override is not None else {}),
     }
 
 
@@ -133,10 +137,12 @@ def simulate(
     loop: LoopConfig | None = None,
     progress: Callable[[float], None] | None = None,
     command: str = "simulate",
+    calibration: CalibrationOverride | None = None,
 ) -> Simulated:
     """Run the trial `spec` (see the module docstring); sim_config: the simulator's other
     settings (e.g. the depth image size), its surface, seed, duration and user profile
-    taken from the spec."""
+    taken from the spec; calibration: a file whose wheel diameters and track the walker's
+    software believes instead (the simulated walker's truth stays)."""
     world = _world(spec)
     ctl_cfg = configure(CONTROLLERS, spec.controller, None, spec.controller_overrides).config
     sim_cfg = checked(
@@ -150,7 +156,8 @@ def simulate(
         "simulation",
     )
     user = ConstantPush(*spec.push_n) if spec.push_n is not None else None
-    sim = Simulator(world, sim_cfg, user=user)
+    believed, override = applied(calibration, sim_cfg.calibration())
+    sim = Simulator(world, sim_cfg, user=user, calibration=believed)
     sim.state.v = float(spec.initial_speed_mps)
     cal = sim.calibration
     # the trial proposes its simulated encoders' noise to every later replay; the live
@@ -158,7 +165,7 @@ def simulate(
     loc = create(spec.localizer, cal, _localizer_config(spec, sim), initial_pose=world.start_pose)
     ctl = CONTROLLERS.create(spec.controller, cal, config=ctl_cfg)
     loop = loop or LoopConfig()
-    config = _run_config(spec, world, ctl_cfg, loc, loop, sim_cfg, command)
+    config = _run_config(spec, world, ctl_cfg, loc, loop, sim_cfg, command, override)
     pipeline = Pipeline(loc, cal, reference_map=False)
     t0 = time.perf_counter()
     if spec.log_path:

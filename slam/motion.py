@@ -279,8 +279,8 @@ class OdometryModel:
 
     def _from_ticks(self, prev: EncoderTicks, msg: EncoderTicks) -> Increment:
         n = self.noise
-        m = self.cal.metres_per_count
-        d = [(msg.left - prev.left) * m, (msg.right - prev.right) * m]
+        m_left, m_right = self.cal.metres_per_count_per_wheel
+        d = [(msg.left - prev.left) * m_left, (msg.right - prev.right) * m_right]
         var = [n.wheel_m * abs(d[0]), n.wheel_m * abs(d[1])]
         if n.brake_aware:
             for i in (0, 1):

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from hardware.calibration import WalkerCalibration
+from hardware.calibration import WalkerCalibration, wheel_diameters
 from hardware.messages import (
     BrakeCommand,
     CameraIntrinsics,
@@ -70,6 +70,9 @@ class SimConfig:
 
     Rates must divide physics_rate_hz. The software's calibration is the true walker
     plus the *_error_m values (the thesis code used a 203 mm wheel; it measures 204 mm).
+    wheel_diameter_ratio_error: the true walker's right wheel is (1 + this) times its
+    left wheel in diameter (their mean is walker.wheel_diameter_m), while the software
+    believes them equal; 0: equal wheels, as before the option existed.
     user_profile: this trial's user (route offset and wander, push, impairment; see
     `UserProfile`) applied to `user` and the world's route; None: `user` on the route.
     gyro: the simulated yaw-rate gyro (`hardware.sim.gyro`), off by default; its draws
@@ -88,6 +91,7 @@ class SimConfig:
     depth_height: int = 120
     wheel_diameter_error_m: float = -0.001
     track_error_m: float = 0.0
+    wheel_diameter_ratio_error: float = 0.0
     walker: WalkerParams = field(default_factory=WalkerParams)
     user: UserParams = field(default_factory=UserParams)
     user_profile: UserProfile | None = None
@@ -112,9 +116,19 @@ class SimConfig:
             )
         if self.physics_rate_hz < 200:
             raise ValueError("physics_rate_hz must be >= 200")
+        if not (
+            math.isfinite(self.wheel_diameter_ratio_error) and self.wheel_diameter_ratio_error > -1
+        ):
+            raise ValueError(
+                f"wheel_diameter_ratio_error must be > -1, got {self.wheel_diameter_ratio_error}"
+            )
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def true_wheel_diameters_m(self) -> tuple[float, float]:
+        """(left, right) diameters of the true walker's wheels."""
+        return wheel_diameters(self.walker.wheel_diameter_m, 1.0 + self.wheel_diameter_ratio_error)
 
     def calibration(self) -> WalkerCalibration:
         """What the walker's software believes (encoders, track, cameras)."""
@@ -133,14 +147,22 @@ class SimConfig:
 
 
 class Simulator:
-    """A walker in a world, pushed by a user; see the module docstring."""
+    """A walker in a world, pushed by a user; see the module docstring.
+
+    calibration: what the walker's software believes (default `config.calibration()`,
+    the true walker plus the configured errors); the simulated sensors are the truth.
+    """
 
     def __init__(
-        self, world: World, config: SimConfig, user: RouteFollower | ConstantPush | None = None
+        self,
+        world: World,
+        config: SimConfig,
+        user: RouteFollower | ConstantPush | None = None,
+        calibration: WalkerCalibration | None = None,
     ):
         self.world = world
         self.config = config
-        self.calibration = config.calibration()
+        self.calibration = calibration or config.calibration()
         # one stream per part; the gyro's is the fifth, so the first four are as before
         seeds = np.random.SeedSequence(config.seed).spawn(5)
         rng_slip, rng_user, rng_depth, rng_tags, rng_gyro = (
@@ -152,9 +174,9 @@ class Simulator:
         self.brakes = Brakes(w)
         self.slip = SlipModel(config.surface, w.brake_torque_max_nm / w.wheel_radius_m, rng_slip)
         # The encoders turn with the *true* wheels; counts_per_rev as calibrated.
-        self.encoders = Encoders(w.wheel_diameter_m, self.calibration.counts_per_rev)
+        self.encoders = Encoders(config.true_wheel_diameters_m(), self.calibration.counts_per_rev)
         if user is None:
-            params, route = config.user, world.route
+            params, route = replace(config.user, **world.user), world.route
             if config.user_profile is not None:
                 params = config.user_profile.apply(params)
                 route = config.user_profile.walk_route(route)

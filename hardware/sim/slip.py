@@ -94,10 +94,18 @@ class SlipModel:
 
 
 class Encoders:
-    """Quadrature encoders on the true wheels: cumulative counts of wheel rotation."""
+    """Quadrature encoders on the true wheels: cumulative counts of wheel rotation.
 
-    def __init__(self, wheel_diameter_m: float, counts_per_rev: int) -> None:
-        self.counts_per_metre = counts_per_rev / (math.pi * wheel_diameter_m)
+    wheel_diameter_m: both wheels', or (left, right) when they differ."""
+
+    def __init__(self, wheel_diameter_m: float | tuple[float, float], counts_per_rev: int) -> None:
+        left, right = (
+            wheel_diameter_m if isinstance(wheel_diameter_m, tuple) else (wheel_diameter_m,) * 2
+        )
+        self._counts_per_metre = (
+            counts_per_rev / (math.pi * left),
+            counts_per_rev / (math.pi * right),
+        )
         self._rolled = [0.0, 0.0]  # metres of circumference rolled (signed)
 
     def roll(self, ground_left: float, ground_right: float, slip: tuple[float, float]) -> None:
@@ -108,6 +116,6 @@ class Encoders:
     def counts(self) -> tuple[int, int]:
         # A quadrature counter reports whole counts (floor, also for negative rotation).
         return (
-            math.floor(self._rolled[0] * self.counts_per_metre),
-            math.floor(self._rolled[1] * self.counts_per_metre),
+            math.floor(self._rolled[0] * self._counts_per_metre[0]),
+            math.floor(self._rolled[1] * self._counts_per_metre[1]),
         )

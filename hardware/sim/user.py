@@ -41,6 +41,9 @@ class UserParams:
     stuck_s: how long they push against something that does not give before stepping back;
     min_turn_speed_mps: they slow into a turn to no faster than they can steer it (80 % of
     the yaw rate their largest handle-force difference holds), but not below this.
+    sighted: they see where the walker is (e.g. a helper pushing it along tape on the
+    floor for a calibration run): their sense of position is the true pose, and the
+    impairment values above do not apply.
     """
 
     speed_mps: float = 0.75
@@ -59,6 +62,7 @@ class UserParams:
     backoff_turn_rad_s: float = 0.4
     stuck_s: float = 1.0
     min_turn_speed_mps: float = 0.2
+    sighted: bool = False
 
 
 @dataclass(frozen=True)
@@ -219,6 +223,9 @@ class RouteFollower:
 
     # -- belief -----------------------------------------------------------------------
     def _feel_motion(self, state: WalkerState, dt: float) -> None:
+        if self.p.sighted:
+            self.belief[:] = (state.x, state.y, state.phi)
+            return
         ds = state.v * dt * (1.0 + self.p.distance_scale_error)
         walked = abs(state.v * dt)
         dphi = state.omega * dt + self.p.heading_bias_rad_per_m * walked

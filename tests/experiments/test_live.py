@@ -300,3 +300,29 @@ def test_live_view_serves_the_running_walker_to_a_websocket_client(tmp_path):
         )
     finally:
         client.close()
+
+
+def test_live_sim_takes_a_calibration_file_for_its_odometry(tmp_path):
+    """--calibration on the simulated walker: its wheel diameters and track replace what
+    the simulated walker's software believes (the cameras stay its own); the recording
+    says so, and a bad file fails before the walker starts."""
+    from hardware.calibration import WalkerCalibration, save_calibration
+
+    cal = tmp_path / "walker.json"
+    save_calibration(WalkerCalibration(track_m=0.66, wheel_diameter_ratio=1.002), cal)
+    opts = sim_options(tmp_path, sim_s=2.0, calibration=str(cal))
+    res = Background(opts).join()
+    assert res.ended_by.startswith("the simulated trial ended")
+    trial = read_log(opts.record)
+    assert trial.calibration.track_m == 0.66 and trial.calibration.wheel_diameter_ratio == 1.002
+    assert trial.calibration.depth_intrinsics.width == 160  # the simulated camera's
+    config = trial.metadata["config"]
+    assert config["calibration_file"] == str(cal)
+    assert config["calibration_override"]["replaced"]["track_m"] == 0.64
+    bad = tmp_path / "bad.json"
+    bad.write_text("[1, 2]")
+    with pytest.raises(ValueError, match=r"bad\.json: not a walker calibration"):
+        LiveRun(sim_options(tmp_path, calibration=str(bad))).run()
+    save_calibration(WalkerCalibration(counts_per_rev=1024), cal)
+    with pytest.raises(ValueError, match=r"walker\.json: calibrated for 1024 counts"):
+        LiveRun(sim_options(tmp_path, calibration=str(cal))).run()
