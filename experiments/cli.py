@@ -13,9 +13,11 @@ from rich.table import Table
 
 from experiments import calibrate_commands, live_commands, study_commands
 from experiments.cli_common import (
+    MitigationOpt,
     console,
     err_console,
     friendly,
+    parse_mitigations,
     parse_size,
     print_error,
     progress_bar,
@@ -98,6 +100,7 @@ def simulate(
             "software believes (the simulated walker stays the true one)"
         ),
     ] = None,
+    mitigation: MitigationOpt = None,
 ) -> None:
     """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log."""
     from dataclasses import replace
@@ -108,6 +111,7 @@ def simulate(
     from hardware.sim.simulator import SimConfig
 
     width, height = parse_size(depth_size)
+    mitigations = parse_mitigations(mitigation, localizer, calibration)[0]
     override = _calibration_override(calibration, [SimConfig().calibration()])
     sim_config = checked(
         lambda: replace(
@@ -134,6 +138,7 @@ def simulate(
             duration_s=duration,
             progress=update,
             calibration=override,
+            mitigations=mitigations,
         )
     c = res.collisions
     console.print(
@@ -277,6 +282,7 @@ def replay(
     fast: Annotated[bool, typer.Option("--fast", help="--foxglove: do not pace")] = False,
     linger: _ReplayLingerOpt = None,
     calibration: CalibrationOpt = None,
+    mitigation: MitigationOpt = None,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
@@ -289,7 +295,8 @@ def replay(
 
     LOCALIZERS.spec(localizer)  # an unknown name: one line, before any work
     overrides = _localizer_overrides(set_, [localizer]).get(localizer, {})
-    configure(LOCALIZERS, localizer, None, overrides)  # a bad --set fails early
+    names, mitigated = parse_mitigations(mitigation, localizer, calibration)
+    configure(LOCALIZERS, localizer, None, {**mitigated.localizer_settings, **overrides})
     _check_out_dir(out)
     if controller is not None:
         CONTROLLERS.spec(controller)  # an unknown name: one line, before any work
@@ -308,7 +315,9 @@ def replay(
         return t - start[0]
 
     # the settings the source proposes (e.g. a dataset's noise levels), then --set
-    built = configure(LOCALIZERS, localizer, trial.metadata, overrides)
+    built = configure(
+        LOCALIZERS, localizer, trial.metadata, {**mitigated.localizer_settings, **overrides}
+    )
     check_gyro(built.config, trial, str(log))
     if built.proposed:
         what = ", ".join(f"{k}={v}" for k, v in built.proposed.items())
@@ -324,6 +333,7 @@ def replay(
                 mapper_config=mapper_config,
                 controller=controller,
                 calibration=override,
+                mitigations=names,
                 progress=lambda t: update(elapsed(t)),
                 phase=update.phase,
                 observers=(
@@ -507,6 +517,7 @@ def compare(
     set_: SetOpt = None,
     dataset_option: DatasetOpt = None,
     calibration: CalibrationOpt = None,
+    mitigation: MitigationOpt = None,
 ) -> None:
     """Run localizers on logs; write results.csv, results.db, report.md; print the table.
 
@@ -516,6 +527,10 @@ def compare(
 
     names = parse_localizers(localizers)
     overrides = _localizer_overrides(set_, names)
+    # each must apply to every localizer compared: one line before any run otherwise
+    mitigations = ()
+    for n in names:
+        mitigations = parse_mitigations(mitigation, n, calibration)[0]
     sources, calibrations = _compare_sources(
         logs, format, robot, relations, time_offset, dataset_option
     )
@@ -538,6 +553,7 @@ def compare(
             progress=lambda what: bar.update(task, description=what),
             overrides=overrides,
             calibration=override,
+            mitigations=mitigations,
         )
     console.print(_summary_table(res.summary))
     console.print("files: " + ", ".join(str(p) for p in res.files.values()), highlight=False)
@@ -649,16 +665,20 @@ def slip_push(
 def list_names(
     name: Annotated[
         str | None,
-        typer.Argument(help="a localizer, controller or dataset format: its settings"),
+        typer.Argument(
+            help="a localizer, controller or dataset format: its settings; a mitigation, "
+            "or 'mitigations': what they set"
+        ),
     ] = None,
 ) -> None:
-    """List built-in courses, localizers, controllers, dataset formats and live devices;
-    with a NAME,
-    its settings (what `--set NAME.FIELD=VALUE` takes) with their defaults."""
+    """List built-in courses, localizers, controllers, dataset formats, mitigations and
+    live devices; with a NAME, its settings (what `--set NAME.FIELD=VALUE` takes) with
+    their defaults, or what a mitigation sets ('mitigations': all of them)."""
     from rich.text import Text
 
     from control.base import CONTROLLERS
     from experiments.config import describe
+    from experiments.mitigations import MITIGATIONS
     from hardware.datasets import FORMATS
     from hardware.devices import DEPTH_CAMERAS, TAG_CAMERAS, forms
     from hardware.errors import UnknownNameError
@@ -666,10 +686,14 @@ def list_names(
     from slam.base import LOCALIZERS
 
     registries = (LOCALIZERS, CONTROLLERS, FORMATS)
+    if name == "mitigations" or name in MITIGATIONS.names():
+        _list_mitigations(None if name == "mitigations" else name)
+        return
     if name is None:
         console.print("courses:         " + ", ".join(available_courses()), highlight=False)
         for reg in registries:
             console.print(f"{reg.kind + 's:':16s} " + ", ".join(reg.names()), highlight=False)
+        console.print("mitigations:     " + ", ".join(MITIGATIONS.names()), highlight=False)
         for reg in (DEPTH_CAMERAS, TAG_CAMERAS):  # devices: --depth / --camera of live
             console.print(f"{reg.kind + 's:':16s} " + ", ".join(forms(reg)), highlight=False)
         console.print("settings of one: walkerslam list NAME", highlight=False)
@@ -683,8 +707,34 @@ def list_names(
                 table.add_row(*(Text(v) for v in (f"{name}.{path}", default, typ)))
             console.print(table)
             return
-    valid = sorted(n for reg in registries for n in reg.names())
-    raise UnknownNameError("localizer, controller or dataset format", name, valid)
+    valid = sorted(n for reg in (*registries, MITIGATIONS) for n in reg.names())
+    raise UnknownNameError("localizer, controller, dataset format or mitigation", name, valid)
+
+
+def _list_mitigations(name: str | None) -> None:
+    """What each mitigation (or the one named) sets, where it applies and what it needs."""
+    from experiments.mitigations import MITIGATIONS
+
+    table = Table("mitigation", "applies to", "sets", "needs", box=None)
+    for n in [name] if name else MITIGATIONS.names():
+        m = MITIGATIONS.create(n)
+        sets = [
+            f"{loc}.{path}={value}"
+            for loc, fields in m.localizers.items()
+            for path, value in fields.items()
+        ]
+        if m.hygiene is not None:
+            sets += [
+                f"map.hygiene.{k}={v}" for k, v in vars(m.hygiene).items() if v not in (None, False)
+            ]
+        needs = [" or ".join(t.__name__ for t in m.needs)] if m.needs else []
+        needs += ["--calibration FILE"] if m.needs_calibration else []
+        needs += [f"a simulated {s}" for s in m.simulated]
+        applies = "every localizer" if "*" in m.localizers else ", ".join(m.localizers)
+        table.add_row(n, applies, "\n".join(sets) or "-", "\n".join(needs) or "-")
+        if name:
+            console.print(f"mitigation {n}: {m.summary}", highlight=False, soft_wrap=True)
+    console.print(table)
 
 
 @app.command()

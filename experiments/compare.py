@@ -17,7 +17,8 @@ import numpy as np
 
 from experiments.calibration_override import CalibrationOverride
 from experiments.config import configure
-from experiments.run import MAP_BAND_M, ReplayResult, check_gyro, replay_log
+from experiments.mitigations import check_calibration, check_source, resolve
+from experiments.run import MAP_BAND_M, ReplayResult, check_gyro, message_types, replay_log
 from hardware.datasets import Dataset
 from hardware.log import TrialLog, read_log
 from slam.base import LOCALIZERS
@@ -123,12 +124,17 @@ def compare(
     progress: Callable[[str], None] | None = None,
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
     calibration: CalibrationOverride | None = None,
+    mitigations: Sequence[str] = (),
 ) -> CompareResult:
     """Every localizer on every source; `overrides` = {localizer: {field path: value}}
     changes fields of a localizer's default config, after the settings the source
     proposes (its metadata "localizer_settings", e.g. a dataset's fitted noise levels):
     `experiments.config.configure`. calibration: a file whose wheel diameters and track
-    replace every source's (`experiments.calibration_override`)."""
+    replace every source's (`experiments.calibration_override`). mitigations: applied to
+    every localizer (`experiments.mitigations`; one that does not apply to one of them,
+    or needs what a source lacks, fails before any run)."""
+    for loc in localizers:
+        check_calibration(resolve(mitigations, loc), calibration)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.db").unlink(missing_ok=True)  # this comparison's runs only, like the CSV
@@ -144,7 +150,10 @@ def compare(
         name = source_name(source)
         for loc in localizers:
             user = dict((overrides or {}).get(loc, {}))
-            built = configure(LOCALIZERS, loc, trial.metadata, user)  # bad settings fail first
+            mitigated = resolve(mitigations, loc)
+            check_source(mitigated, message_types(trial), name)
+            settings = {**mitigated.localizer_settings, **user}
+            built = configure(LOCALIZERS, loc, trial.metadata, settings)  # bad settings fail first
             check_gyro(built.config, trial, name)
             for seed in range(seeds) if is_stochastic(loc) else [None]:
                 over = user if seed is None else {**user, "seed": seed}
@@ -160,6 +169,7 @@ def compare(
                     reference_map=False,
                     drag_metrics=False,
                     calibration=calibration,
+                    mitigations=mitigations,
                 )
                 row = _row(name, loc, seed, res)
                 rows.append(row)

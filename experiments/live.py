@@ -41,6 +41,7 @@ from control.base import CONTROLLERS
 from control.safety import SafeController
 from experiments.calibration_override import CalibrationOverride, applied
 from experiments.config import configure
+from experiments.mitigations import Mitigated, check_calibration, resolve
 from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
 from hardware.arduino import ArduinoBoard, BoardConfig, BoardStats
 from hardware.calibration import WalkerCalibration
@@ -49,6 +50,7 @@ from hardware.errors import ConfigError
 from hardware.live import LiveSources
 from hardware.log import LogWriter
 from hardware.messages import BrakeCommand, DepthFrame, EncoderTicks, LaserScan, Message
+from mapping.mapper import MapperConfig
 from slam.base import LOCALIZERS, create
 from slam.motion import uses_gyro
 
@@ -93,6 +95,7 @@ class LiveOptions:
     duration_s: float | None = None
     localizer_overrides: dict[str, Any] = field(default_factory=dict)
     controller_overrides: dict[str, Any] = field(default_factory=dict)
+    mitigations: tuple[str, ...] = ()  # experiments.mitigations, before the overrides
     sim: SimWalker | None = None
     loop: LoopConfig = LIVE_LOOP
     board: BoardConfig = field(default_factory=BoardConfig)
@@ -234,6 +237,7 @@ class LiveRun:
         # what a run is made of (built by run())
         self.cal = WalkerCalibration()
         self.calibration_file: CalibrationOverride | None = None  # --calibration
+        self.mitigated = Mitigated()  # --mitigation's effect (resolved in _check_options)
         self.calibration_override: dict[str, Any] | None = None  # its record, with --sim
         self.devices: list[tuple[str, Any]] = []
         self.metadata: dict[str, Any] = {}
@@ -394,11 +398,17 @@ class LiveRun:
         opts = self.options
         LOCALIZERS.spec(opts.localizer)
         CONTROLLERS.spec(opts.controller)
-        configure(LOCALIZERS, opts.localizer, None, opts.localizer_overrides)
+        self.mitigated = resolve(opts.mitigations, opts.localizer)
+        check_calibration(self.mitigated, opts.calibration)
+        configure(LOCALIZERS, opts.localizer, None, self._localizer_settings())
         if opts.sim is None and not opts.serial:
             raise LiveError("live needs --serial PORT (or --sim)")
         self.calibration_file = CalibrationOverride.load(opts.calibration)
         return configure(CONTROLLERS, opts.controller, None, opts.controller_overrides).config
+
+    def _localizer_settings(self) -> dict[str, Any]:
+        """The mitigations' localizer fields, then --set."""
+        return {**self.mitigated.localizer_settings, **self.options.localizer_overrides}
 
     def _open_devices(self) -> None:
         """The simulated walker (--sim), the board (handshake), the cameras."""
@@ -431,7 +441,7 @@ class LiveRun:
         safety layer, pipeline."""
         opts, cal = self.options, self.cal
         self.initial = (self.metadata.get("world") or {}).get("start_pose") or (0.0, 0.0, 0.0)
-        built = configure(LOCALIZERS, opts.localizer, self.metadata, opts.localizer_overrides)
+        built = configure(LOCALIZERS, opts.localizer, self.metadata, self._localizer_settings())
         hs = self.board.handshake if self.board is not None else None
         if uses_gyro(built.config) and (hs is None or hs.gyro_lsb_per_10dps is None):
             raise LiveError(
@@ -442,7 +452,9 @@ class LiveRun:
         loc = create(opts.localizer, cal, built.config, initial_pose=tuple(self.initial))
         ctl = CONTROLLERS.create(opts.controller, cal, config=ctl_cfg)
         self._safe = SafeController(ctl, cal, opts.loop.safety)
-        self.pipeline = Pipeline(loc, cal, reference_map=False)
+        hygiene = self.mitigated.hygiene
+        mapper = MapperConfig(hygiene=hygiene) if hygiene is not None else None
+        self.pipeline = Pipeline(loc, cal, mapper, reference_map=False)
         self.config = self._config(loc, ctl_cfg, self.initial, self.proposed)
         self.latency = _Latency(self.clock, lambda frame: self._sources.arrival(frame))
 
@@ -586,6 +598,7 @@ class LiveRun:
                 "camera_yaml": opts.camera_yaml,
             },
             "calibration_file": opts.calibration,
+            "mitigations": self.mitigated.record(),
             "calibration_override": self.calibration_override,
             "sim": asdict(opts.sim) if opts.sim is not None else None,
         }

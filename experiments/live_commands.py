@@ -15,7 +15,14 @@ import typer
 from rich.live import Live
 from rich.text import Text
 
-from experiments.cli_common import console, err_console, friendly, parse_size
+from experiments.cli_common import (
+    MitigationOpt,
+    console,
+    err_console,
+    friendly,
+    parse_mitigations,
+    parse_size,
+)
 from hardware.errors import ConfigError
 
 
@@ -189,6 +196,7 @@ def live(
     camera_calibration: _CameraCalibrationOpt = None,
     camera_fps: _CameraFpsOpt = None,
     calibration: _CalibrationOpt = None,
+    mitigation: MitigationOpt = None,
     record: _RecordOpt = None,
     duration: Annotated[float | None, typer.Option(help="stop after this many s")] = None,
     set_: _SetOpt = None,
@@ -214,6 +222,7 @@ def live(
     from experiments.live import LIVE_LOOP, LiveError, LiveOptions, LiveRun, SimWalker
 
     sets = _live_sets(localizer, controller, set_ or [])
+    names, mitigated = parse_mitigations(mitigation, localizer, calibration)
     if sim and (serial is not None or depth != "none" or camera != "none"):
         raise LiveError("--sim brings its own board and cameras: drop --serial/--depth/--camera")
     if (firmware or gyro) and not sim:
@@ -228,7 +237,7 @@ def live(
             depth_size=parse_size(depth_size),
             depth_rate_hz=depth_rate,
             firmware=firmware,
-            gyro=gyro,
+            gyro=gyro or "gyro" in mitigated.simulated,
         )
     opts = LiveOptions(
         localizer=localizer,
@@ -243,6 +252,7 @@ def live(
         duration_s=duration,
         localizer_overrides=sets.get(localizer, {}),
         controller_overrides=sets.get(controller, {}),
+        mitigations=names,
         sim=sim_walker,
         foxglove_port=foxglove_port if foxglove else None,
         loop=replace(LIVE_LOOP, trigger=trigger, rate_hz=rate),

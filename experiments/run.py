@@ -11,7 +11,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -23,13 +23,14 @@ from experiments import metrics as M
 from experiments.calibration_override import CalibrationOverride, applied
 from experiments.config import Configured, configure
 from experiments.drag import DragConfig
+from experiments.mitigations import Mitigated, check_calibration, check_source, resolve
 from experiments.pipeline import LoopConfig, Pipeline
 from experiments.simulation import VERSION, RunSpec, simulate
 from hardware.calibration import WalkerCalibration
 from hardware.datasets import Dataset
 from hardware.errors import ConfigError, UnknownNameError
 from hardware.log import TrialLog, read_log
-from hardware.messages import GyroRate
+from hardware.messages import MESSAGE_TYPES, GyroRate
 from hardware.sim.simulator import SimConfig
 from hardware.sim.world import World
 from mapping.export import save_map_server
@@ -70,10 +71,12 @@ def simulate_trial(
     loop: LoopConfig | None = None,
     progress: Callable[[float], None] | None = None,
     calibration: CalibrationOverride | None = None,
+    mitigations: Sequence[str] = (),
 ) -> SimulateResult:
     """Simulate `course` in closed loop and record everything to an MCAP trial log
     (`experiments.simulation.simulate`, the studies' trials' implementation too);
-    calibration: a file whose wheel diameters and track the software believes."""
+    calibration: a file whose wheel diameters and track the software believes;
+    mitigations: of the live localizer and map (the walker carries what they need)."""
     spec = RunSpec(
         course,
         controller,
@@ -83,6 +86,7 @@ def simulate_trial(
         duration_s=duration_s,
         seed_localizer=False,
         log_path=str(out_path),
+        mitigations=tuple(mitigations),
     )
     run = simulate(
         spec, sim_config=sim_config, loop=loop, progress=progress, calibration=calibration
@@ -128,6 +132,7 @@ class _Replay:
     outlines: list
     drag_cfg: DragConfig
     controller: str | None
+    mitigated: Mitigated
     phantom: drag.PhantomSeries | None = None
     frame_drag: drag.FrameDrag | None = None
     recomputer: drag.CommandRecomputer | None = None
@@ -153,6 +158,7 @@ def replay_log(
     phase: Callable[[str], None] | None = None,
     observers: Callable[[Pipeline], Sequence[Any]] | None = None,
     calibration: CalibrationOverride | None = None,
+    mitigations: Sequence[str] = (),
 ) -> ReplayResult:
     """Run a recorded trial (a log path, an opened log or an opened dataset) through a
     localizer and the mapper; write estimates, maps, metrics against ground truth (when
@@ -180,10 +186,18 @@ def replay_log(
     (metrics, figures), for a progress display.
     calibration: a calibration file whose wheel diameters and track replace the log's
     (`experiments.calibration_override`; recorded in config.json).
+    mitigations: names of encoder-slip mitigations (`experiments.mitigations`): their
+    localizer fields come before `localizer_overrides`, their map hygiene replaces the
+    mapper config's; the source must hold what they need (recorded in config.json).
     """
+    mitigated = resolve(mitigations, localizer)
+    check_calibration(mitigated, calibration)
+    localizer_overrides = {**mitigated.localizer_settings, **(localizer_overrides or {})}
+    if mitigated.hygiene is not None:
+        mapper_config = replace(mapper_config or MapperConfig(), hygiene=mitigated.hygiene)
     r = _build(
         log, out_dir, localizer, localizer_config, localizer_overrides, mapper_config,
-        reference_map, controller, drag_config, calibration,
+        reference_map, controller, drag_config, calibration, mitigated,
     )  # fmt: skip
     _attach_evaluation(r, drag_metrics, observers)
     _run(r, progress)
@@ -197,17 +211,21 @@ def replay_log(
     return ReplayResult(r.out, metrics, duration, files, r.pipeline, r.world)
 
 
+def message_types(trial: TrialLog | Dataset) -> set[type]:
+    """The message types a log or dataset holds."""
+    if isinstance(trial, TrialLog):
+        return set(trial.topics.values())
+    counts = trial.counts()
+    return {t for t in MESSAGE_TYPES if counts.get(t.__name__, 0) > 0}
+
+
 def check_gyro(config: Any, trial: TrialLog | Dataset, name: str) -> None:
     """ConfigError naming the source when a localizer's config asks for the gyro
     (noise.gyro.enabled) and the source has no gyro messages: the user asked for the
     gyro explicitly, so running without it would misreport what was measured."""
     if not uses_gyro(config):
         return
-    if isinstance(trial, TrialLog):
-        has_gyro = GyroRate in trial.topics.values()
-    else:
-        has_gyro = trial.counts().get(GyroRate.__name__, 0) > 0
-    if not has_gyro:
+    if GyroRate not in message_types(trial):
         raise ConfigError(
             f"{name}: no gyro messages (GyroRate, topic /imu/gyro) but noise.gyro.enabled "
             "is set; record the trial with a gyro (simulate --gyro) or leave it off"
@@ -225,12 +243,13 @@ def _out_dir(out_dir: str | Path) -> Path:
 
 def _build(
     log, out_dir, localizer, localizer_config, overrides, mapper_config, reference_map,
-    controller, drag_config, calibration_file,
+    controller, drag_config, calibration_file, mitigated,
 ) -> _Replay:  # fmt: skip
     """The source, the calibration, the localizer's config, the localizer, the pipeline."""
     trial = log if isinstance(log, TrialLog | Dataset) else read_log(log)
     cal, override = applied(calibration_file, trial.calibration)
     log_path = str(trial.path) if isinstance(trial, TrialLog) else f"{trial.name}"
+    check_source(mitigated, message_types(trial), log_path)
     if localizer_config is None:
         built = configure(LOCALIZERS, localizer, trial.metadata, overrides or {})
     else:
@@ -252,7 +271,7 @@ def _build(
     outlines = [p for _, p in world.footprint_polygons(*MAP_BAND_M)] if world is not None else []
     return _Replay(
         trial, log_path, out, localizer, built, cal, override, pipeline, world, true_landmarks,
-        outlines, drag_config or DragConfig(), controller,
+        outlines, drag_config or DragConfig(), controller, mitigated,
     )  # fmt: skip
 
 
@@ -335,6 +354,12 @@ def _evaluate(r: _Replay):
         off = cal.brake.torque_off_nm
         metrics["braking_impulse_nms"] = M.braking_impulse(rec.commands, off, rec.t_last)
         metrics["braking_impulse"] = M.braking_impulse_per_wheel(rec.commands, off, rec.t_last)
+        if gt is not None and len(est) > 1:
+            metrics.update(
+                drag.heading_error_while_braking(
+                    est, gt, rec.commands, off, r.drag_cfg.brake_threshold_nm
+                )
+            )
     return metrics, gt
 
 
@@ -386,6 +411,8 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
         files.update(
             write_figures(out, pipeline, est, gt, r.outlines, localizer=r.localizer, log=r.log_path)
         )
+    if pipeline.hygiene is not None:
+        metrics["map_hygiene"] = dict(pipeline.hygiene.counts)
     files["metrics"] = out / "metrics.json"
     files["metrics"].write_text(json.dumps(metrics, indent=2) + "\n")
     files["config"] = out / "config.json"
@@ -398,6 +425,7 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
         "source_localizer_settings": r.built.proposed,
         "source_localizer_settings_skipped": r.built.skipped,
         "localizer_overrides": r.built.overrides,
+        "mitigations": r.mitigated.record(),
         "calibration_override": r.calibration_override,
         "mapper_config": _jsonable(pipeline.mapper.config),
         "controller": r.controller,

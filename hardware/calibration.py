@@ -62,6 +62,16 @@ class BrakeCalibration:
     def torque(self, pwm: float) -> float:
         return self.torque_off_nm + self.slope_nm_per_pwm * float(min(max(pwm, 0), self.pwm_max))
 
+    def level(self, torque_nm: float) -> float:
+        """How far `torque_nm` is engaged above the residual torque, as a share of the
+        brake's range (0 released, 1 full), clipped to [0, 1]."""
+        span = self.torque_max_nm - self.torque_off_nm
+        return min(max((torque_nm - self.torque_off_nm) / span, 0.0), 1.0)
+
+    def levels(self, cmd: Any) -> tuple[float, float]:
+        """(left, right) `level` of a BrakeCommand."""
+        return self.level(cmd.left_nm), self.level(cmd.right_nm)
+
     def clamp(self, torque_nm: float) -> float:
         return float(min(max(torque_nm, self.torque_off_nm), self.torque_max_nm))
 

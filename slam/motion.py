@@ -239,12 +239,7 @@ class OdometryModel:
             inc = None if prev is None else self._from_velocity(prev, msg)
             return self._with_gyro(prev or msg, msg, inc)
         if isinstance(msg, BrakeCommand):
-            b = self.cal.brake
-            span = b.torque_max_nm - b.torque_off_nm
-            self._brake_level = (
-                min(max((msg.left_nm - b.torque_off_nm) / span, 0.0), 1.0),
-                min(max((msg.right_nm - b.torque_off_nm) / span, 0.0), 1.0),
-            )
+            self._brake_level = self.cal.brake.levels(msg)
             if self.gyro is not None:
                 self.gyro.brakes(msg.t, self._brake_level)
         elif isinstance(msg, GyroRate) and self.gyro is not None:
