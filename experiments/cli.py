@@ -83,15 +83,20 @@ def simulate(
     depth_size: Annotated[
         str, typer.Option(help="depth image size WxH, up to 640x480")
     ] = "160x120",
+    slip_scale: Annotated[
+        str,
+        typer.Option(help="L,R: each rear wheel's factor of the surface's slip coefficient"),
+    ] = "1,1",
 ) -> None:
     """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log."""
     from dataclasses import replace
 
-    from experiments.config import checked
+    from experiments.config import checked, convert
     from experiments.run import simulate_trial
     from hardware.sim.simulator import SimConfig
 
     width, height = parse_size(depth_size)
+    scale = convert(slip_scale, tuple[float, float], "--slip-scale")
     sim_config = checked(
         lambda: replace(
             SimConfig(),
@@ -100,6 +105,7 @@ def simulate(
             surface=surface,
             seed=seed,
             duration_s=duration,
+            slip_scale=scale,
         ),
         "simulate",
     )

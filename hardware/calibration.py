@@ -65,6 +65,11 @@ class BrakeCalibration:
     def clamp(self, torque_nm: float) -> float:
         return float(min(max(torque_nm, self.torque_off_nm), self.torque_max_nm))
 
+    def level(self, torque_nm: float) -> float:
+        """How far a torque is between the residual and full torque, in [0, 1]."""
+        span = self.torque_max_nm - self.torque_off_nm
+        return min(max((torque_nm - self.torque_off_nm) / span, 0.0), 1.0)
+
 
 def _kinect_depth() -> CameraIntrinsics:
     return CameraIntrinsics.from_fov(160, 120, math.radians(57.0), math.radians(43.0))
