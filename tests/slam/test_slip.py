@@ -284,3 +284,87 @@ _EXACT_SENSOR = {
     "bearing_sigma_rad": 0.002,
     "noise": MotionNoise(wheel_m=1e-5),
 }
+
+
+# -- simulated trials -------------------------------------------------------------------
+# The mitigation as measured (README "Wheel-slip estimation"): the slip estimate, the
+# observations at their own time, the commands' 30 ms loop latency, and the encoder noise
+# of a clean floor (the slip no longer needs the dusty floor's proposed 5.4e-4).
+MITIGATION = {
+    "slip.estimate": "true",
+    "align_observations": "true",
+    "noise.brake_delay_s": "0.03",
+    "noise.wheel_m": "1e-4",
+}
+
+
+def _run_trial(path, name: str, over: dict):
+    """The localizer over a trial log (no mapper); with the log's ground truth and
+    metadata."""
+    from experiments.config import configure
+    from hardware.log import read_log
+    from hardware.messages import GroundTruthPose
+    from slam.trajectory import Trajectory
+
+    trial = read_log(path)
+    cfg = configure(LOCALIZERS, name, trial.metadata, over).config
+    loc = create(name, trial.calibration, cfg, trial.metadata["config"]["initial_pose"])
+    gt = []
+    for msg in trial.messages():
+        loc.process(msg)
+        if isinstance(msg, GroundTruthPose) and (not gt or msg.t > gt[-1][0]):
+            gt.append((msg.t, msg.x, msg.y, msg.theta))
+    gt = np.array(gt)
+    return loc, Trajectory(gt[:, 0], gt[:, 1:]), trial.metadata
+
+
+@pytest.fixture(scope="module")
+def calibration_trial(tmp_path_factory):
+    """The thesis course on a dusty floor with open-loop braking (seed 3), the left tyre
+    slipping 1.3 times the surface's k and the right 0.8 times."""
+    from experiments.run import simulate_trial
+    from hardware.sim.simulator import SimConfig
+
+    path = tmp_path_factory.mktemp("calibration") / "dusty.mcap"
+    cfg = SimConfig(slip_scale=(1.3, 0.8))
+    simulate_trial("thesis-course", path, surface="dusty", seed=3, sim_config=cfg)
+    return path
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["ekf-slam", "gtsam", "fastslam"])
+def test_slip_estimates_converge_to_the_true_k_on_a_calibration_run(calibration_trial, name):
+    """Measured within 1 % (ekf-slam), 5 % (gtsam), 11 % (fastslam) of the effective k
+    (0.162, 0.086); the issue's target is 20 %."""
+    loc, _, meta = _run_trial(calibration_trial, name, MITIGATION)
+    k, _ = loc.slip_estimate()
+    truth = meta["slip"]["k_effective"]
+    assert truth[0] == pytest.approx(1.3 / 0.8 * truth[1], rel=0.3)  # the tyres differ
+    assert k == pytest.approx(truth, rel=0.2)
+
+
+@pytest.fixture(scope="module")
+def clean_trial(tmp_path_factory):
+    """course_trial's user (seed 2) on a clean floor."""
+    from experiments.run import simulate_trial
+
+    path = tmp_path_factory.mktemp("clean") / "clean.mcap"
+    simulate_trial("thesis-course", path, surface="clean", seed=2)
+    return path
+
+
+@pytest.mark.slow
+def test_slip_aware_gtsam_on_dusty_is_near_its_clean_floor_ate(course_trial, clean_trial):
+    """Seed 2 (README "Wheel-slip estimation", seeds 0-2): dusty 0.066 m at defaults,
+    0.026 m with the mitigation; clean 0.027 m at defaults, 0.021 m with it."""
+    from experiments.metrics import ate
+
+    def error(path, over):
+        loc, gt, _ = _run_trial(path, "gtsam", over)
+        return ate(loc.trajectory(), gt)["ate_rmse_m"]
+
+    dusty, dusty_default = error(course_trial, MITIGATION), error(course_trial, {})
+    clean, clean_default = error(clean_trial, MITIGATION), error(clean_trial, {})
+    assert dusty < 0.5 * dusty_default
+    assert dusty < 1.2 * clean_default
+    assert dusty < 1.5 * clean
