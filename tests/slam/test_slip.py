@@ -100,6 +100,20 @@ def test_brake_levels_are_averaged_over_an_increment_after_the_delay():
         MotionNoise(brake_delay_s=-0.1)
 
 
+@pytest.mark.parametrize(
+    ("bad", "needle"),
+    [
+        ({"k_prior": (0.95, 0.0)}, "k_prior"),
+        ({"k_prior": (0.1,)}, "k_prior"),
+        ({"k_sigma": 0.0}, "k_sigma"),
+        ({"random_walk_per_s": -1e-3}, "random_walk_per_s"),
+    ],
+)
+def test_bad_slip_settings_are_refused(bad, needle):
+    with pytest.raises(ValueError, match=needle):
+        SlipEstimation(**bad)
+
+
 def test_split_increment_composes_to_the_whole():
     inc = Increment(1.0, 0.02, 0.012, 0.03, np.diag([1e-6, 4e-6]), (0.011, 0.013), (0.4, 0.0))
     a, b = split_increment(inc, 0.985)
