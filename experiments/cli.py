@@ -101,11 +101,15 @@ def simulate(
         ),
     ] = None,
     mitigation: MitigationOpt = None,
+    slip_scale: Annotated[
+        str,
+        typer.Option(help="L,R: each rear wheel's factor of the surface's slip coefficient"),
+    ] = "1,1",
 ) -> None:
     """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log."""
     from dataclasses import replace
 
-    from experiments.config import checked
+    from experiments.config import checked, convert
     from experiments.run import simulate_trial
     from hardware.sim.gyro import GyroSimConfig
     from hardware.sim.simulator import SimConfig
@@ -113,6 +117,7 @@ def simulate(
     width, height = parse_size(depth_size)
     mitigations = parse_mitigations(mitigation, localizer, calibration)[0]
     override = _calibration_override(calibration, [SimConfig().calibration()])
+    scale = convert(slip_scale, tuple[float, float], "--slip-scale")
     sim_config = checked(
         lambda: replace(
             SimConfig(),
@@ -122,6 +127,7 @@ def simulate(
             seed=seed,
             duration_s=duration,
             gyro=GyroSimConfig(enabled=gyro),
+            slip_scale=scale,
         ),
         "simulate",
     )

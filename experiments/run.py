@@ -36,7 +36,7 @@ from hardware.sim.world import World
 from mapping.export import save_map_server
 from mapping.mapper import MapperConfig
 from slam import landmarks
-from slam.base import LOCALIZERS, LandmarkMapper, create
+from slam.base import LOCALIZERS, LandmarkMapper, SlipEstimator, create
 from slam.motion import uses_gyro
 
 # The mapper's obstacle band: what the map should show of the true world.
@@ -330,6 +330,8 @@ def _evaluate(r: _Replay):
     if estimated is not None:
         metrics["landmark_rmse_unaligned_m"] = M.landmark_rmse(estimated, r.true_landmarks)
     _diagnostics(r, metrics)
+    if isinstance(loc, SlipEstimator) and (slip := loc.slip_estimate()) is not None:
+        metrics["slip"] = M.slip_errors(*slip, r.trial.metadata.get("slip"))
     est = loc.trajectory()
     gt = rec.groundtruth_trajectory()
     if gt is not None and len(est) > 1:

@@ -194,6 +194,7 @@ def simulate(
         path.parent.mkdir(parents=True, exist_ok=True)
         with LogWriter(path, cal, metadata={"config": config, **sim.metadata}) as log:
             run_closed_loop(sim, sim, pipeline, ctl, loop, record=FeedOrder(log), progress=progress)
+            log.add_metadata("slip", sim.slip_summary())
     else:
         run_closed_loop(sim, sim, pipeline, ctl, loop, progress=progress)
     return Simulated(sim, world, pipeline, config, time.perf_counter() - t0)

@@ -73,6 +73,12 @@ that variance, averages to the variance multiplier (σ multipliers clipped to
 `odometry_adaptive_range`, reported as `odometry_sigma_scale`); from the
 `odometry_adaptive_min_matches`-th match on it applies to new odometry factors, and the
 factors added before are replaced once with the scaled ones.
+
+Slip estimation (`slip.estimate`, slam.slip): each keyframe also has the wheels' slip
+coefficients k = (k_left, k_right) as a Point2 S(i), with a prior on S(0) and a random
+walk between successive ones; the odometry factor from keyframe i to i+1 is then a
+function of S(i) (slam.gtsam_slip), so the tags that pin the poses also estimate k, and
+the odometry is integrated with the latest estimate of k between them.
 """
 
 from __future__ import annotations
@@ -83,7 +89,7 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, T, X
+from gtsam.symbol_shorthand import L, S, T, X
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
@@ -99,6 +105,7 @@ from slam.absolute import (
     offset_position_jacobian,
 )
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
+from slam.gtsam_slip import slip_odometry_factor, slip_walk_factor
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -107,7 +114,14 @@ from slam.measurement import (
     ObservationModel,
     landmark_observation,
 )
-from slam.motion import MotionNoise, OdometryModel, apply_increment, increment_jacobians
+from slam.motion import (
+    Increment,
+    MotionNoise,
+    OdometryModel,
+    apply_increment,
+    increment_jacobians,
+    split_increment,
+)
 from slam.scan_matching import (
     MatchResult,
     Reference,
@@ -119,6 +133,7 @@ from slam.scan_matching import (
     place,
     relative_guess,
 )
+from slam.slip import SlipEstimation, increment_with_slip, slip_diagnostics
 from slam.trajectory import Trajectory
 
 
@@ -242,6 +257,13 @@ class GtsamConfig(LocalizerConfig):
     both accept a match through a MatchGate.
     absolute: compass / position-fix factors (slam.absolute.AbsoluteConfig; off by
     default; module docstring).
+    slip: per-wheel slip estimation (slam.slip.SlipEstimation; `slip.estimate=true`).
+    align_observations: a landmark observation is held until the next odometry message
+    and placed at the pose of its own time (slam.motion.split_increment); otherwise at
+    the last odometry message's pose. A tag frame falls between encoder messages (10 ms
+    after one at 50 Hz): in a turn the walker has turned on by then, and that heading
+    error, correlated with braking, biases a slip estimate low (by ~15 % on simulated
+    trials).
     """
 
     prior_sigma: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
@@ -274,6 +296,8 @@ class GtsamConfig(LocalizerConfig):
     odometry_adaptive_range: tuple[float, float] = (0.1, 100.0)
     loop: LoopClosures = field(default_factory=lambda: LoopClosures())
     absolute: AbsoluteConfig = field(default_factory=AbsoluteConfig)
+    slip: SlipEstimation = field(default_factory=SlipEstimation)
+    align_observations: bool = False
 
     def __post_init__(self) -> None:
         coerce(
@@ -375,8 +399,14 @@ class GtsamSmoother(Localizer):
         self._odo_scale = np.ones(3)  # adaptive σ multipliers of the odometry (x, y, θ)
         self._odo_z: list[np.ndarray] = []  # normalised squared odometry errors
         self._adapted = not (config.scan_matching and config.odometry_adaptive)
-        self._early_odometry: list[list] = []  # [keyframe, delta, model cov, factor index]
+        # [keyframe, delta, model cov, slip (or None), factor index]
+        self._early_odometry: list[list] = []
         self._pending: list[tuple[int, list]] = []  # (position in self._graph, record)
+        # slip estimation: the latest estimate of k, and ∂delta/∂k since the keyframe
+        self._slip = config.slip.estimate
+        self._k = np.array(config.slip.k_prior, dtype=float)
+        self._delta_jk = np.zeros((3, 2))
+        self._held: list[LandmarkObservation] = []  # align_observations: not yet placed
         if config.scan_matching:
             self.counts.update(
                 scans_kept=0,
@@ -393,18 +423,41 @@ class GtsamSmoother(Localizer):
     def process(self, msg: Message) -> None:
         inc = self.odometry.increment(msg)
         if inc is not None:
-            self._integrate(inc.ds, inc.dtheta, inc.cov)
+            for obs in self._held:  # observations made since the last odometry message
+                part, inc = split_increment(inc, obs.t)
+                self._move(part)
+                self._observe(obs)
+            self._held = []
+            self._move(inc)
             self._note(msg.t)
             if self._keyframe_due(msg.t):
                 self._new_keyframe(msg.t)
         elif (obs := landmark_observation(msg, self.calibration)) is not None:
-            self._observe(obs)
+            if self.config.align_observations and self._t is not None and obs.t > self._t:
+                self._held.append(obs)  # placed when the next odometry message spans it
+            else:
+                self._observe(obs)
         elif (fix := absolute_observation(msg, self.config.absolute)) is not None:
             self._absolute(fix)
         elif self.config.scan_matching and isinstance(msg, LaserScan | DepthFrame):
             self._scan(msg)
         if self._kf < 0 and self.odometry.has_odometry:
             self._start(msg.t)
+
+    def _move(self, inc: Increment) -> None:
+        """Integrate an odometry increment (slip-corrected with the latest k)."""
+        if self._slip:
+            ds, dth, jk = increment_with_slip(inc, self._k, self.calibration.track_m)
+            self._integrate(float(ds), float(dth), inc.cov, jk)
+        else:
+            self._integrate(inc.ds, inc.dtheta, inc.cov)
+
+    def _place_held(self) -> None:
+        """Observations still waiting for the odometry after them (align_observations),
+        placed at the latest pose: an output is asked for."""
+        for obs in self._held:
+            self._observe(obs)
+        self._held = []
 
     def _start(self, t: float) -> None:
         c = self.config
@@ -415,6 +468,10 @@ class GtsamSmoother(Localizer):
             )
         )
         self._values.insert(X(0), pose)
+        if self._slip:
+            sigma = gtsam.noiseModel.Isotropic.Sigma(2, c.slip.k_sigma)
+            self._graph.add(gtsam.PriorFactorPoint2(S(0), self._k, sigma))
+            self._values.insert(S(0), self._k)
         self._kf, self._kf_t = 0, [t]
         self._flush()
         self._note(t)
@@ -427,13 +484,18 @@ class GtsamSmoother(Localizer):
         self._t = t
         self._records.append((t, self._kf, self._delta.copy()))
 
-    def _integrate(self, ds: float, dth: float, q: np.ndarray) -> None:
+    def _integrate(
+        self, ds: float, dth: float, q: np.ndarray, jk: np.ndarray | None = None
+    ) -> None:
+        """Add an increment to the motion since the keyframe; jk: ∂(ds, dθ)/∂k (slip)."""
         c = self.config
         if self._walk:
             kxy, kxy_turn, kth, kturn = c.odometry_walk
             vxy = kxy * abs(ds) + kxy_turn * abs(dth)
             added = np.diag([vxy, vxy, kth * abs(ds) + kturn * abs(dth)])
         f, g = increment_jacobians(self._delta[2], ds, dth)
+        if jk is not None:
+            self._delta_jk = f @ self._delta_jk + g @ jk
         self._delta = apply_increment(self._delta, ds, dth)
         if not self._walk:
             added = g @ q @ g.T
@@ -460,22 +522,29 @@ class GtsamSmoother(Localizer):
         s = self._odo_scale
         return (model_cov + floor) * np.outer(s, s)
 
-    def _odometry_factor(self, a: int, delta: np.ndarray, model_cov: np.ndarray):
-        return gtsam.BetweenFactorPose2(
-            X(a),
-            X(a + 1),
-            gtsam.Pose2(*delta),
-            gtsam.noiseModel.Gaussian.Covariance(self._odometry_cov(model_cov)),
-        )
+    def _odometry_factor(self, a: int, delta: np.ndarray, model_cov: np.ndarray, slip=None):
+        """Keyframe a → a + 1; slip: (∂delta/∂k, the k it was integrated with), making
+        it a function of S(a) (slam.gtsam_slip), or None."""
+        noise = gtsam.noiseModel.Gaussian.Covariance(self._odometry_cov(model_cov))
+        if slip is not None:
+            return slip_odometry_factor(X(a), X(a + 1), S(a), delta, *slip, noise)
+        return gtsam.BetweenFactorPose2(X(a), X(a + 1), gtsam.Pose2(*delta), noise)
 
     def _new_keyframe(self, t: float) -> None:
         k = self._kf + 1
+        slip = (self._delta_jk, self._k.copy()) if self._slip else None
         if self.config.scan_matching and not self._adapted:
             # kept until the odometry noise is adapted, then replaced (see _adapt_odometry)
-            self._early_odometry.append([self._kf, self._delta.copy(), self._delta_cov.copy()])
+            record = [self._kf, self._delta.copy(), self._delta_cov.copy(), slip]
+            self._early_odometry.append(record)
             self._pending.append((self._graph.size(), self._early_odometry[-1]))
-        self._graph.add(self._odometry_factor(self._kf, self._delta, self._delta_cov))
+        self._graph.add(self._odometry_factor(self._kf, self._delta, self._delta_cov, slip))
         self._values.insert(X(k), gtsam.Pose2(*compose(self._kf_pose, self._delta)))
+        if self._slip:
+            walk = self.config.slip.random_walk_per_s * math.sqrt(max(t - self._kf_t[-1], 0.0))
+            self._graph.add(slip_walk_factor(S(self._kf), S(k), max(walk, 1e-6)))
+            self._values.insert(S(k), self._k)
+            self._delta_jk = np.zeros((3, 2))
         self._kf = k
         self._kf_t.append(t)
         self._delta = np.zeros(3)
@@ -664,9 +733,9 @@ class GtsamSmoother(Localizer):
                 self._adapted = True
                 self._flush()
                 graph = gtsam.NonlinearFactorGraph()
-                for a, delta, cov, _ in self._early_odometry:
-                    graph.add(self._odometry_factor(a, delta, cov))
-                remove = [rec[3] for rec in self._early_odometry]
+                for a, delta, cov, slip, _ in self._early_odometry:
+                    graph.add(self._odometry_factor(a, delta, cov, slip))
+                remove = [rec[4] for rec in self._early_odometry]
                 self.isam.update(graph, gtsam.Values(), remove)
                 self._early_odometry = []
                 self._after_update()
@@ -764,6 +833,8 @@ class GtsamSmoother(Localizer):
     def _after_update(self) -> None:
         est = self.isam.calculateEstimatePose2(X(self._kf))
         self._kf_pose = np.array([est.x(), est.y(), est.theta()])
+        if self._slip:
+            self._k = np.array(self.isam.calculateEstimatePoint2(S(self._kf)), dtype=float)
         self._marginal = None
         self.revision += 1
         self.counts["updates"] += 1
@@ -783,6 +854,7 @@ class GtsamSmoother(Localizer):
         return PoseEstimate(t, compose(self._kf_pose, self._delta), cov)
 
     def trajectory(self) -> Trajectory:
+        self._place_held()
         if self._cache is not None and self._cache[0] == self.revision:
             return self._cache[1]
         if not self._records:
@@ -799,6 +871,7 @@ class GtsamSmoother(Localizer):
         return traj
 
     def landmarks(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        self._place_held()
         values = self.isam.calculateEstimate()
         out = {}
         for lid in sorted(self._landmarks):
@@ -816,8 +889,19 @@ class GtsamSmoother(Localizer):
                 )
         return out
 
+    def slip_estimate(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(k_left, k_right) of the latest keyframe and their 2×2 marginal covariance;
+        None without slip estimation (or before the first keyframe)."""
+        if not self._slip or self._kf < 0:
+            return None
+        self._place_held()
+        return self._k.copy(), self.isam.marginalCovariance(S(self._kf))
+
     def diagnostics(self) -> dict:
-        notes = {**self.counts, **self.odometry.diagnostics()}
+        self._place_held()
+        notes: dict = {**self.counts, **self.odometry.diagnostics()}
+        if (slip := self.slip_estimate()) is not None:
+            notes.update(slip_diagnostics(*slip))
         if self.config.scan_matching:
             notes["odometry_sigma_scale"] = [round(float(v), 3) for v in self._odo_scale]
             if self.counts["scan_factors"] + self.counts["loop_closures"] == 0:

@@ -22,6 +22,9 @@ With a yaw-rate gyro (`MotionNoise.gyro.enabled`, `slam.gyro`), an increment kee
 odometry's ds and its variance but takes dθ from the gyro, integrated over the same
 interval and corrected by the online bias and scale estimate; var(dθ) is then the
 gyro's and cov(ds, dθ) = 0 (independent sensors).
+An increment from encoder ticks also carries each wheel's counted distance and brake
+level, so that a localizer that estimates each wheel's slip coefficient k can recompute
+it (`slip_corrected`: true distance = encoder distance / (1 − k·level)).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ import numpy as np
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
 from hardware.messages import BrakeCommand, EncoderTicks, GyroRate, Message, VelocityOdometry
+from slam.brake_schedule import BrakeSchedule
 from slam.gyro import GyroFusion, GyroHeading
 
 
@@ -169,6 +173,11 @@ class MotionNoise:
     brake_aware: inflate (and optionally de-bias) a braked wheel.
     gyro: the turn from a yaw-rate gyro, its bias estimated online (`slam.gyro`); off by
     default.
+    brake_delay_s: None: an increment's brake level is the last command's; a number:
+    each command takes effect this much later (loop latency and brake lag; the simulator
+    has 0.03 s + a 0.025 s time constant) and an increment's level is the time average
+    of the levels in force over it (slam.brake_schedule). The level matters only with
+    brake_aware or a slip estimate (slam.slip).
     """
 
     wheel_m: float = 0.0025
@@ -181,9 +190,12 @@ class MotionNoise:
     brake_wheel_m: float = 0.02
     bias_per_full_brake: float = 0.0
     gyro: GyroFusion = field(default_factory=GyroFusion)
+    brake_delay_s: float | None = None
 
     def __post_init__(self) -> None:
         coerce(self, velocity_model=VelocityModel)
+        if self.brake_delay_s is not None and not 0.0 <= self.brake_delay_s < math.inf:
+            raise ValueError(f"brake_delay_s must be >= 0 (or None), got {self.brake_delay_s}")
         if len(self.distance_walk) != 4 or min(self.distance_walk) < 0:
             raise ValueError(f"distance_walk must be four values >= 0, got {self.distance_walk}")
 
@@ -199,13 +211,71 @@ def uses_gyro(config: object) -> bool:
 
 @dataclass(frozen=True)
 class Increment:
-    """Motion from t − dt to t: arc length ds, turn dθ and their 2×2 covariance."""
+    """Motion from t − dt to t: arc length ds, turn dθ and their 2×2 covariance.
+
+    From encoder ticks also what a slip estimate needs (`slip_corrected`): wheels, each
+    wheel's encoder distance [m] (left, right) as counted, before any brake-aware
+    de-biasing; brake_level, each brake's commanded level in [0, 1] over the increment."""
 
     t: float
     dt: float
     ds: float
     dtheta: float
     cov: np.ndarray
+    wheels: tuple[float, float] | None = None
+    brake_level: tuple[float, float] = (0.0, 0.0)
+
+
+def split_increment(inc: Increment, t: float) -> tuple[Increment, Increment]:
+    """The increment's motion before and after time t, in proportion to time (the walker
+    taken to move at a constant rate over an increment: the two arcs compose exactly to
+    the whole); t is clipped to the increment's span. For a landmark observation made
+    between two odometry messages, applied at the pose of its own time."""
+    t0 = inc.t - inc.dt
+    f = min(max((t - t0) / inc.dt, 0.0), 1.0) if inc.dt > 0 else 0.0
+    parts = []
+    for share, end, dt in ((f, t0 + f * inc.dt, f * inc.dt), (1.0 - f, inc.t, (1 - f) * inc.dt)):
+        wheels = None if inc.wheels is None else (share * inc.wheels[0], share * inc.wheels[1])
+        parts.append(
+            Increment(
+                end,
+                dt,
+                share * inc.ds,
+                share * inc.dtheta,
+                share * inc.cov,
+                wheels,
+                inc.brake_level,
+            )
+        )
+    return parts[0], parts[1]
+
+
+# the most of a wheel's distance that slip may be taken to hide (k·level is clipped to it)
+MAX_SLIP = 0.9
+
+
+def slip_corrected(
+    wheels: tuple[float, float], levels: tuple[float, float], k: np.ndarray, track: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ds, dθ) of an increment whose wheels slipped by s = k·level, and J = ∂(ds, dθ)/∂k.
+
+    A wheel with slip ratio s rolls (1 − s) of the ground it covers, so its true distance
+    is its encoder distance / (1 − k·level) (k·level clipped to ±MAX_SLIP, where J's
+    column is 0). k (..., 2): (k_left, k_right), e.g. one row per particle; returns ds,
+    dθ (...) and J (..., 2, 2), rows (ds, dθ), columns (k_left, k_right)."""
+    k = np.asarray(k, dtype=float)
+    level = np.asarray(levels, dtype=float)
+    u = k * level
+    inside = np.abs(u) < MAX_SLIP
+    scale = 1.0 / (1.0 - np.clip(u, -MAX_SLIP, MAX_SLIP))
+    d = np.asarray(wheels, dtype=float) * scale
+    dd = np.where(inside, d * scale * level, 0.0)  # ∂d/∂k of each wheel
+    j = np.empty((*k.shape[:-1], 2, 2))
+    j[..., 0, :] = 0.5 * dd
+    j[..., 1, 0] = -dd[..., 0] / track
+    j[..., 1, 1] = dd[..., 1] / track
+    ds, dth = wheel_increment(d[..., 0], d[..., 1], track)
+    return ds, dth, j
 
 
 class OdometryModel:
@@ -222,6 +292,8 @@ class OdometryModel:
             if self.noise.gyro.enabled
             else None
         )
+        delay = self.noise.brake_delay_s
+        self._brake_schedule = None if delay is None else BrakeSchedule(delay)
 
     @property
     def has_odometry(self) -> bool:
@@ -242,6 +314,8 @@ class OdometryModel:
             self._brake_level = self.cal.brake.levels(msg)
             if self.gyro is not None:
                 self.gyro.brakes(msg.t, self._brake_level)
+            if self._brake_schedule is not None:
+                self._brake_schedule.command(msg.t, self._brake_level)
         elif isinstance(msg, GyroRate) and self.gyro is not None:
             self.gyro.add(msg)
         return None
@@ -276,10 +350,14 @@ class OdometryModel:
         n = self.noise
         m_left, m_right = self.cal.metres_per_count_per_wheel
         d = [(msg.left - prev.left) * m_left, (msg.right - prev.right) * m_right]
+        counted = (d[0], d[1])
+        levels = self._brake_level
+        if self._brake_schedule is not None:
+            levels = self._brake_schedule.mean(prev.t, msg.t)
         var = [n.wheel_m * abs(d[0]), n.wheel_m * abs(d[1])]
         if n.brake_aware:
             for i in (0, 1):
-                level = self._brake_level[i]
+                level = levels[i]
                 var[i] += n.brake_wheel_m * level * abs(d[i])
                 d[i] /= 1.0 - min(n.bias_per_full_brake * level, 0.9)
         track = self.cal.track_m
@@ -289,7 +367,7 @@ class OdometryModel:
         cov = np.array(
             [[0.25 * (a + b), 0.5 * (b - a) / track], [0.5 * (b - a) / track, (a + b) / track**2]]
         )
-        return Increment(msg.t, msg.t - prev.t, ds, dth, cov)
+        return Increment(msg.t, msg.t - prev.t, ds, dth, cov, counted, levels)
 
     def _from_velocity(self, prev: VelocityOdometry, msg: VelocityOdometry) -> Increment | None:
         dt = msg.t - prev.t

@@ -26,7 +26,9 @@ Metadata records (MCAP metadata maps str to str, so each dict is stored as one k
     calibration   WalkerCalibration.to_dict(); required, a log without it is rejected
     <name>        every dict given as LogWriter(metadata={name: dict}), e.g. "config", "world",
                   "localizer_settings" (settings the source proposes to localizers,
-                  experiments.studies.settings.source_settings)
+                  experiments.studies.settings.source_settings); LogWriter.add_metadata
+                  writes one later, e.g. a simulated trial's "slip" at its end (the true
+                  per-wheel slip coefficients, hardware.sim.slip)
 
 Attachments: LogWriter(attachments={name: bytes}), media type application/octet-stream.
 

@@ -36,8 +36,9 @@ from hardware.sim.gyro import GyroSimConfig, SimGyro
 from hardware.sim.slip import (
     Encoders,
     SlipModel,
+    SlipTruth,
     proposed_localizer_settings,
-    surface_coefficient,
+    wheel_slip_coefficients,
 )
 from hardware.sim.tag_camera import SimTagCamera, TagCameraConfig
 from hardware.sim.user import ConstantPush, RouteFollower, UserParams, UserProfile
@@ -77,6 +78,8 @@ class SimConfig:
     `UserProfile`) applied to `user` and the world's route; None: `user` on the route.
     gyro: the simulated yaw-rate gyro (`hardware.sim.gyro`), off by default; its draws
     come from a seed stream of their own, so switching it on changes no other sensor.
+    slip_scale: (left, right) factors of the surface's slip coefficient per wheel
+    (`hardware.sim.slip`); (1, 1): both wheels slip alike.
     """
 
     surface: str | float = "dusty"
@@ -98,9 +101,10 @@ class SimConfig:
     depth: DepthCameraConfig = field(default_factory=DepthCameraConfig)
     tags: TagCameraConfig = field(default_factory=TagCameraConfig)
     gyro: GyroSimConfig = field(default_factory=GyroSimConfig)
+    slip_scale: tuple[float, float] = (1.0, 1.0)
 
     def __post_init__(self) -> None:
-        surface_coefficient(self.surface)
+        wheel_slip_coefficients(self.surface, self.slip_scale)
         if not (math.isfinite(self.duration_s) and self.duration_s > 0):
             raise ValueError(f"duration must be > 0 s, got {self.duration_s}")
         for name in ("encoder_rate_hz", "depth_rate_hz", "tag_rate_hz", "groundtruth_rate_hz"):
@@ -172,7 +176,14 @@ class Simulator:
         x0, y0, th0 = world.start_pose
         self.state = WalkerState(x=x0, y=y0, phi=th0)
         self.brakes = Brakes(w)
-        self.slip = SlipModel(config.surface, w.brake_torque_max_nm / w.wheel_radius_m, rng_slip)
+        self.slip = SlipModel(
+            config.surface,
+            w.brake_torque_max_nm / w.wheel_radius_m,
+            rng_slip,
+            wheel_scale=config.slip_scale,
+        )
+        self.slip_truth = SlipTruth()
+        self._brake_level = (0.0, 0.0)  # of the last command, as the localizers read it
         # The encoders turn with the *true* wheels; counts_per_rev as calibrated.
         self.encoders = Encoders(config.true_wheel_diameters_m(), self.calibration.counts_per_rev)
         if user is None:
@@ -225,6 +236,18 @@ class Simulator:
             }
         return meta
 
+    def slip_summary(self) -> dict[str, Any]:
+        """The true slip of the run so far (`hardware.sim.slip`): each wheel's k at full
+        brake force (k_surface × slip_scale), the effective k per unit commanded brake
+        level that the localizers estimate (None for a wheel never braked), and the
+        ground distance each wheel rolled braked. Written to a trial log's metadata
+        "slip" when the run ends."""
+        return {
+            "k_wheel": list(self.slip.k_wheel),
+            "k_effective": list(self.slip_truth.effective_k()),
+            "braked_distance_m": list(self.slip_truth.braked_m),
+        }
+
     def pose(self) -> np.ndarray:
         return np.array([self.state.x, self.state.y, self.state.phi])
 
@@ -232,6 +255,7 @@ class Simulator:
         """Set the brake command; torques pass through the board's PWM quantisation."""
         cal = self.calibration.brake
         self.brakes.set_command(cal.torque(cal.pwm(cmd.left_nm)), cal.torque(cal.pwm(cmd.right_nm)))
+        self._brake_level = (cal.level(cmd.left_nm), cal.level(cmd.right_nm))
 
     def poll(self, until: float, stop_at_frame: bool = False) -> list[Message]:
         """Advance to `until` (or until done) and return the messages that fell due;
@@ -273,6 +297,7 @@ class Simulator:
         wl, wr = s.wheel_speeds(w.half_track_m)
         self.last_slip = self.slip.step(dt, (f_bl, f_br))
         self.encoders.roll(wl * dt, wr * dt, self.last_slip)
+        self.slip_truth.add((wl * dt, wr * dt), self.last_slip, self._brake_level)
         self._collide(out)
 
     def _parts_in_world(self) -> list[tuple[str, np.ndarray]]:

@@ -116,3 +116,13 @@ def test_relation_errors_zero_for_exact_and_known_for_scaled():
     expected = 0.1 * np.hypot(*(gt.poses[j, :2] - gt.poses[i, :2]).T).mean()
     assert out["relations_trans_mean_m"] == pytest.approx(expected, rel=1e-6)
     assert out["relations_rot_mean_deg"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_slip_errors_against_the_true_effective_k():
+    from experiments.metrics import slip_errors
+
+    cov = np.diag([0.01**2, 0.02**2])
+    out = slip_errors(np.array([0.11, 0.05]), cov, {"k_effective": [0.1, None]})
+    assert out["k"] == pytest.approx([0.11, 0.05]) and out["k_sigma"] == pytest.approx([0.01, 0.02])
+    assert out["relative_error"][0] == pytest.approx(0.1) and out["relative_error"][1] is None
+    assert "relative_error" not in slip_errors(np.zeros(2), cov, None)

@@ -222,6 +222,25 @@ def test_metadata_calibration_and_attachments_round_trip(tmp_path: Path) -> None
     assert json.loads(records["calibration"]["json"]) == json.loads(json.dumps(cal.to_dict()))
 
 
+def test_metadata_written_at_the_end_round_trips(tmp_path: Path) -> None:
+    """A record added after the messages (what a run knows only when it ends) reads back
+    with the rest; bad input is refused as at the start; a closed writer takes none."""
+    path = tmp_path / "late.mcap"
+    with LogWriter(path, WalkerCalibration(), {"config": {"a": 1}}) as w:
+        for k in range(60):  # past a chunk boundary (0.5 s)
+            w.write(EncoderTicks(0.02 * k, k, k))
+        w.add_metadata("slip", {"k_effective": [0.1, None]})
+        with pytest.raises(ValueError, match="reserved"):
+            w.add_metadata("calibration", {})
+        with pytest.raises(ValueError, match="strict JSON"):
+            w.add_metadata("x", {"v": math.inf})
+    with pytest.raises(ValueError, match="closed"):
+        w.add_metadata("late", {})
+    log = read_log(path)
+    assert log.metadata == {"config": {"a": 1}, "slip": {"k_effective": [0.1, None]}}
+    assert log.message_count == 60
+
+
 def test_writer_rejects_bad_input(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="reserved"):
         LogWriter(tmp_path / "a.mcap", WalkerCalibration(), {"calibration": {}})
