@@ -238,10 +238,11 @@ class EkfSlam(Localizer):
             else:
                 self._add_landmark(lid, z)
         self._unsync()
-        self._after_observation()
+        self._after_observation(between)
 
-    def _after_observation(self) -> None:
-        """The smoother's last step takes the corrected covariance; the past is revised."""
+    def _after_observation(self, between: bool = False) -> None:
+        """The smoother's last step takes the corrected covariance (unless the observation
+        was made after it: align_observations); the past is revised."""
         if self.revises_past and self._f_cov:
             if not between:
                 self._f_cov[-1] = self._cov3
