@@ -97,6 +97,11 @@ class Mitigated:
         }
 
 
+def set_name(names: Sequence[str]) -> str:
+    """A set of mitigations' name in tables and file names: 'none' or 'a+b'."""
+    return "+".join(names) if names else "none"
+
+
 def parse(text: str | Sequence[str] | None) -> tuple[str, ...]:
     """'gyro,map-hygiene' (or a list of such) → ('gyro', 'map-hygiene'); 'none' or
     nothing → (); unknown names are an error listing the valid ones."""

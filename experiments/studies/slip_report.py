@@ -19,6 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from experiments.mitigations import set_name
 from experiments.studies.tables import BOOT_SEED, markdown
 
 N_BOOT = 5_000
@@ -172,14 +173,12 @@ def figures(rows: Sequence[dict[str, Any]], fig_dir: Path) -> dict[str, Path]:
 
 def write_report(study, out: Path, rows, entries, files) -> Path:
     """report.md: the design, the ranking of the mitigations, the cell means, figures."""
-    from experiments.studies.slip_study import combo_name
-
     lines = [
         f"# Slip study: {study.course}",
         "",
         f"{study.trials} simulated users × surfaces {', '.join(study.surfaces)} × localizers "
         f"{', '.join(study.localizers)} × mitigations "
-        f"{', '.join(combo_name(c) for c in study.mitigations)} × controllers "
+        f"{', '.join(set_name(c) for c in study.mitigations)} × controllers "
         f"{', '.join(study.controllers)}; at most {study.duration_s:g} s per trial; seeds "
         f"{study.seed}–{study.trial_seed(study.trials - 1)}.",
         "",

@@ -28,7 +28,7 @@ from typing import Any
 
 from control.base import CONTROLLERS
 from experiments.config import configure
-from experiments.mitigations import check_calibration, resolve
+from experiments.mitigations import check_calibration, resolve, set_name
 from experiments.simulation import RunSpec
 from experiments.studies import slip_report
 from experiments.studies.runner import StudyResult, run_and_store, write_json
@@ -84,11 +84,6 @@ COLUMNS = (
     "log",
     "config",
 )
-
-
-def combo_name(combo: tuple[str, ...]) -> str:
-    """A mitigation set's name in tables and cells: 'none' or 'a+b'."""
-    return "+".join(combo) if combo else "none"
 
 
 @dataclass(frozen=True)
@@ -158,7 +153,7 @@ class SlipStudy:
 
 
 def cell_name(surface: str, localizer: str, combo: tuple[str, ...], controller: str) -> str:
-    return f"{surface}_{localizer}_{combo_name(combo)}_{controller}"
+    return f"{surface}_{localizer}_{set_name(combo)}_{controller}"
 
 
 def plan(study: SlipStudy, out: Path) -> list[RunSpec]:
@@ -241,7 +236,7 @@ def result_row(res: dict[str, Any]) -> dict[str, Any]:
         "surface": str(spec.surface),
         "slip_k": surface_coefficient(spec.surface),
         "localizer": spec.localizer,
-        "mitigation": combo_name(spec.mitigations),
+        "mitigation": set_name(spec.mitigations),
         "controller": spec.controller,
         "trial": spec.labels.get("trial"),
         "seed": spec.seed,
@@ -291,7 +286,7 @@ def run_slip_study(
         {
             "command": "slip-study",
             **asdict(study),
-            "mitigations": [combo_name(c) for c in study.mitigations],
+            "mitigations": [set_name(c) for c in study.mitigations],
             "engine": engine,
             "runs": len(rows),
         },
