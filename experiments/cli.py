@@ -11,11 +11,13 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from experiments import live_commands, study_commands
+from experiments import calibrate_commands, live_commands, study_commands
 from experiments.cli_common import (
+    MitigationOpt,
     console,
     err_console,
     friendly,
+    parse_mitigations,
     parse_size,
     print_error,
     progress_bar,
@@ -83,15 +85,39 @@ def simulate(
     depth_size: Annotated[
         str, typer.Option(help="depth image size WxH, up to 640x480")
     ] = "160x120",
+    gyro: Annotated[
+        bool,
+        typer.Option(
+            "--gyro",
+            help="carry a simulated MEMS yaw-rate gyro (an MPU-6050) and record its "
+            "/imu/gyro stream; the other sensors are as without it",
+        ),
+    ] = False,
+    calibration: Annotated[
+        Path | None,
+        typer.Option(
+            help="walker calibration JSON whose wheel diameters and track the walker's "
+            "software believes (the simulated walker stays the true one)"
+        ),
+    ] = None,
+    mitigation: MitigationOpt = None,
+    slip_scale: Annotated[
+        str,
+        typer.Option(help="L,R: each rear wheel's factor of the surface's slip coefficient"),
+    ] = "1,1",
 ) -> None:
     """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log."""
     from dataclasses import replace
 
-    from experiments.config import checked
+    from experiments.config import checked, convert
     from experiments.run import simulate_trial
+    from hardware.sim.gyro import GyroSimConfig
     from hardware.sim.simulator import SimConfig
 
     width, height = parse_size(depth_size)
+    mitigations = parse_mitigations(mitigation, localizer, calibration)[0]
+    override = _calibration_override(calibration, [SimConfig().calibration()])
+    scale = convert(slip_scale, tuple[float, float], "--slip-scale")
     sim_config = checked(
         lambda: replace(
             SimConfig(),
@@ -100,6 +126,8 @@ def simulate(
             surface=surface,
             seed=seed,
             duration_s=duration,
+            gyro=GyroSimConfig(enabled=gyro),
+            slip_scale=scale,
         ),
         "simulate",
     )
@@ -115,6 +143,8 @@ def simulate(
             seed=seed,
             duration_s=duration,
             progress=update,
+            calibration=override,
+            mitigations=mitigations,
         )
     c = res.collisions
     console.print(
@@ -182,7 +212,7 @@ def _dataset_options(robot, relations, time_offset, extra: list[str] | None = No
 @app.command(name="import")
 @friendly
 def import_(
-    format: Annotated[str, typer.Argument(help="mrclam, carmen or victoria-park")],
+    format: Annotated[str, typer.Argument(help="mrclam, carmen, victoria-park or mtrx5700")],
     path: Annotated[Path, typer.Argument(help="dataset folder or log file")],
     output: Annotated[Path, typer.Option("-o", "--output", help="trial log to write (.mcap)")],
     robot: RobotOpt = None,
@@ -208,7 +238,7 @@ _ReplayMapModelOpt = Annotated[
     str, typer.Option(help="log-odds, or view-count (the thesis's >50 % of views)")
 ]
 _ReplayFormatOpt = Annotated[
-    str | None, typer.Option(help="read LOG as a dataset: mrclam, carmen, victoria-park")
+    str | None, typer.Option(help="read LOG as a dataset: mrclam, carmen, victoria-park, mtrx5700")
 ]
 _ReplayControllerOpt = Annotated[
     str | None,
@@ -227,6 +257,13 @@ _ReplayFoxgloveOpt = Annotated[
 ]
 _ReplayLingerOpt = Annotated[
     float | None, typer.Option(help="--foxglove: serve this long after the end [s]")
+]
+CalibrationOpt = Annotated[
+    Path | None,
+    typer.Option(
+        help="walker calibration JSON (e.g. from walkerslam calibrate) whose wheel diameters "
+        "and track replace the log's for the odometry"
+    ),
 ]
 
 
@@ -250,19 +287,22 @@ def replay(
     speed: Annotated[float, typer.Option(help="--foxglove: replay speed, × real time")] = 1.0,
     fast: Annotated[bool, typer.Option("--fast", help="--foxglove: do not pace")] = False,
     linger: _ReplayLingerOpt = None,
+    calibration: CalibrationOpt = None,
+    mitigation: MitigationOpt = None,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
     from control.base import CONTROLLERS
     from experiments.config import configure
-    from experiments.run import replay_log
+    from experiments.run import check_gyro, replay_log
     from mapping.grid import GridConfig, MapModel
     from mapping.mapper import MapperConfig
     from slam.base import LOCALIZERS
 
     LOCALIZERS.spec(localizer)  # an unknown name: one line, before any work
     overrides = _localizer_overrides(set_, [localizer]).get(localizer, {})
-    configure(LOCALIZERS, localizer, None, overrides)  # a bad --set fails early
+    names, mitigated = parse_mitigations(mitigation, localizer, calibration)
+    configure(LOCALIZERS, localizer, None, {**mitigated.localizer_settings, **overrides})
     _check_out_dir(out)
     if controller is not None:
         CONTROLLERS.spec(controller)  # an unknown name: one line, before any work
@@ -272,6 +312,7 @@ def replay(
     trial, total = _open_source(
         log, format, _dataset_options(robot, relations, time_offset, dataset_option)
     )
+    override = _calibration_override(calibration, [trial.calibration])
     start: list[float] = []
 
     def elapsed(t: float) -> float:
@@ -280,7 +321,10 @@ def replay(
         return t - start[0]
 
     # the settings the source proposes (e.g. a dataset's noise levels), then --set
-    built = configure(LOCALIZERS, localizer, trial.metadata, overrides)
+    built = configure(
+        LOCALIZERS, localizer, trial.metadata, {**mitigated.localizer_settings, **overrides}
+    )
+    check_gyro(built.config, trial, str(log))
     if built.proposed:
         what = ", ".join(f"{k}={v}" for k, v in built.proposed.items())
         err_console.print(f"note: the source proposes {what}", highlight=False, soft_wrap=True)
@@ -294,6 +338,8 @@ def replay(
                 localizer_overrides=overrides,
                 mapper_config=mapper_config,
                 controller=controller,
+                calibration=override,
+                mitigations=names,
                 progress=lambda t: update(elapsed(t)),
                 phase=update.phase,
                 observers=(
@@ -326,6 +372,18 @@ def _open_source(log: Path, format: str | None, dataset_opts: dict):
     trial = read_log(log)
     t0, t1 = trial.time_range if trial.message_count else (0.0, 0.0)
     return trial, t1 - t0
+
+
+def _calibration_override(path: Path | None, calibrations: list):
+    """--calibration's file, checked against the sources' calibrations (their encoders)
+    before any work; None without the option."""
+    from experiments.calibration_override import CalibrationOverride
+
+    override = CalibrationOverride.load(path)
+    if override is not None:
+        for cal in calibrations:
+            override.apply(cal)
+    return override
 
 
 def _replay_view(trial, port: int, speed: float):
@@ -454,7 +512,8 @@ def compare(
     seeds: Annotated[int, typer.Option(help="runs of each stochastic localizer")] = 3,
     out: Annotated[Path, typer.Option(help="output folder")] = Path("out/compare"),
     format: Annotated[
-        str | None, typer.Option(help="read LOGS as datasets: mrclam, carmen, victoria-park")
+        str | None,
+        typer.Option(help="read LOGS as datasets: mrclam, carmen, victoria-park, mtrx5700"),
     ] = None,
     robot: Annotated[
         str | None, typer.Option(help="mrclam: robot numbers separated by commas, e.g. 1,2,3,4,5")
@@ -463,6 +522,8 @@ def compare(
     time_offset: TimeOffsetOpt = None,
     set_: SetOpt = None,
     dataset_option: DatasetOpt = None,
+    calibration: CalibrationOpt = None,
+    mitigation: MitigationOpt = None,
 ) -> None:
     """Run localizers on logs; write results.csv, results.db, report.md; print the table.
 
@@ -472,7 +533,14 @@ def compare(
 
     names = parse_localizers(localizers)
     overrides = _localizer_overrides(set_, names)
-    sources = _compare_sources(logs, format, robot, relations, time_offset, dataset_option)
+    # each must apply to every localizer compared: one line before any run otherwise
+    mitigations = ()
+    for n in names:
+        mitigations = parse_mitigations(mitigation, n, calibration)[0]
+    sources, calibrations = _compare_sources(
+        logs, format, robot, relations, time_offset, dataset_option
+    )
+    override = _calibration_override(calibration, calibrations)
     if seeds < 1:
         raise ConfigError(f"--seeds must be >= 1, got {seeds}")
     with Progress(
@@ -490,15 +558,18 @@ def compare(
             out,
             progress=lambda what: bar.update(task, description=what),
             overrides=overrides,
+            calibration=override,
+            mitigations=mitigations,
         )
     console.print(_summary_table(res.summary))
     console.print("files: " + ", ".join(str(p) for p in res.files.values()), highlight=False)
 
 
-def _compare_sources(logs, format, robot, relations, time_offset, dataset_option) -> list:
-    """compare's sources: trial log paths (each read once to fail fast on a bad file), or
-    the datasets opened for each log and --robot."""
+def _compare_sources(logs, format, robot, relations, time_offset, dataset_option):
+    """compare's sources — trial log paths (each read once to fail fast on a bad file), or
+    the datasets opened for each log and --robot — and their calibrations."""
     sources: list = []
+    calibrations: list = []
     if format is not None:
         from hardware.datasets import open_dataset
 
@@ -514,15 +585,16 @@ def _compare_sources(logs, format, robot, relations, time_offset, dataset_option
             for r in robots:
                 opts = _dataset_options(r, relations, time_offset, dataset_option)
                 sources.append(open_dataset(format, log, **opts))
+                calibrations.append(sources[-1].calibration)
     else:
         if robot is not None or relations is not None or time_offset is not None or dataset_option:
             raise ConfigError(DATASET_OPTIONS_NEED_FORMAT)
         from hardware.log import read_log
 
         for log in logs:
-            read_log(log)  # fail fast on a bad file, before any run
+            calibrations.append(read_log(log).calibration)  # a bad file fails before any run
         sources = list(logs)
-    return sources
+    return sources, calibrations
 
 
 def _summary_table(summary: list[dict]) -> Table:
@@ -599,16 +671,20 @@ def slip_push(
 def list_names(
     name: Annotated[
         str | None,
-        typer.Argument(help="a localizer, controller or dataset format: its settings"),
+        typer.Argument(
+            help="a localizer, controller or dataset format: its settings; a mitigation, "
+            "or 'mitigations': what they set"
+        ),
     ] = None,
 ) -> None:
-    """List built-in courses, localizers, controllers, dataset formats and live devices;
-    with a NAME,
-    its settings (what `--set NAME.FIELD=VALUE` takes) with their defaults."""
+    """List built-in courses, localizers, controllers, dataset formats, mitigations and
+    live devices; with a NAME, its settings (what `--set NAME.FIELD=VALUE` takes) with
+    their defaults, or what a mitigation sets ('mitigations': all of them)."""
     from rich.text import Text
 
     from control.base import CONTROLLERS
     from experiments.config import describe
+    from experiments.mitigations import MITIGATIONS
     from hardware.datasets import FORMATS
     from hardware.devices import DEPTH_CAMERAS, TAG_CAMERAS, forms
     from hardware.errors import UnknownNameError
@@ -616,10 +692,14 @@ def list_names(
     from slam.base import LOCALIZERS
 
     registries = (LOCALIZERS, CONTROLLERS, FORMATS)
+    if name == "mitigations" or name in MITIGATIONS.names():
+        _list_mitigations(None if name == "mitigations" else name)
+        return
     if name is None:
         console.print("courses:         " + ", ".join(available_courses()), highlight=False)
         for reg in registries:
             console.print(f"{reg.kind + 's:':16s} " + ", ".join(reg.names()), highlight=False)
+        console.print("mitigations:     " + ", ".join(MITIGATIONS.names()), highlight=False)
         for reg in (DEPTH_CAMERAS, TAG_CAMERAS):  # devices: --depth / --camera of live
             console.print(f"{reg.kind + 's:':16s} " + ", ".join(forms(reg)), highlight=False)
         console.print("settings of one: walkerslam list NAME", highlight=False)
@@ -633,8 +713,34 @@ def list_names(
                 table.add_row(*(Text(v) for v in (f"{name}.{path}", default, typ)))
             console.print(table)
             return
-    valid = sorted(n for reg in registries for n in reg.names())
-    raise UnknownNameError("localizer, controller or dataset format", name, valid)
+    valid = sorted(n for reg in (*registries, MITIGATIONS) for n in reg.names())
+    raise UnknownNameError("localizer, controller, dataset format or mitigation", name, valid)
+
+
+def _list_mitigations(name: str | None) -> None:
+    """What each mitigation (or the one named) sets, where it applies and what it needs."""
+    from experiments.mitigations import MITIGATIONS
+
+    table = Table("mitigation", "applies to", "sets", "needs", box=None)
+    for n in [name] if name else MITIGATIONS.names():
+        m = MITIGATIONS.create(n)
+        sets = [
+            f"{loc}.{path}={value}"
+            for loc, fields in m.localizers.items()
+            for path, value in fields.items()
+        ]
+        if m.hygiene is not None:
+            sets += [
+                f"map.hygiene.{k}={v}" for k, v in vars(m.hygiene).items() if v not in (None, False)
+            ]
+        needs = [" or ".join(t.__name__ for t in m.needs)] if m.needs else []
+        needs += ["--calibration FILE"] if m.needs_calibration else []
+        needs += [f"a simulated {s}" for s in m.simulated]
+        applies = "every localizer" if "*" in m.localizers else ", ".join(m.localizers)
+        table.add_row(n, applies, "\n".join(sets) or "-", "\n".join(needs) or "-")
+        if name:
+            console.print(f"mitigation {n}: {m.summary}", highlight=False, soft_wrap=True)
+    console.print(table)
 
 
 @app.command()
@@ -675,6 +781,7 @@ def info(log: Annotated[Path, typer.Argument(help="trial log (.mcap)")]) -> None
 
 study_commands.register(app)  # course-study, corner-study
 live_commands.register(app)  # live, board, calibrate-camera
+calibrate_commands.register(app)  # calibrate
 
 
 def main(argv: list[str] | None = None) -> int:

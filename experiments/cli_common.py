@@ -14,6 +14,8 @@ import sys
 import warnings
 from collections.abc import Callable
 from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated
 
 import typer
 from rich.console import Console
@@ -110,3 +112,23 @@ def progress_bar(label: str, total: float | None):
 
         update.phase = phase  # type: ignore[attr-defined]
         yield update
+
+
+MitigationOpt = Annotated[
+    str | None,
+    typer.Option(
+        help="encoder-slip mitigations NAME[,NAME...] (walkerslam list mitigations): they "
+        "set the localizer's fields they need (before --set) and the map's hygiene"
+    ),
+]
+
+
+def parse_mitigations(text: str | None, localizer: str, calibration: Path | None):
+    """(names, their combined effect on `localizer`) of --mitigation; one-line errors
+    for an unknown name, one that does not apply, or a missing --calibration."""
+    from experiments.mitigations import check_calibration, parse, resolve
+
+    names = parse(text)
+    mitigated = resolve(names, localizer)
+    check_calibration(mitigated, calibration)
+    return names, mitigated

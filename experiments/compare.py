@@ -15,8 +15,10 @@ from typing import Any
 
 import numpy as np
 
+from experiments.calibration_override import CalibrationOverride
 from experiments.config import configure
-from experiments.run import MAP_BAND_M, ReplayResult, replay_log
+from experiments.mitigations import check_calibration, check_source, resolve
+from experiments.run import MAP_BAND_M, ReplayResult, check_gyro, message_types, replay_log
 from hardware.datasets import Dataset
 from hardware.log import TrialLog, read_log
 from slam.base import LOCALIZERS
@@ -121,11 +123,18 @@ def compare(
     out_dir: str | Path,
     progress: Callable[[str], None] | None = None,
     overrides: Mapping[str, Mapping[str, Any]] | None = None,
+    calibration: CalibrationOverride | None = None,
+    mitigations: Sequence[str] = (),
 ) -> CompareResult:
     """Every localizer on every source; `overrides` = {localizer: {field path: value}}
     changes fields of a localizer's default config, after the settings the source
     proposes (its metadata "localizer_settings", e.g. a dataset's fitted noise levels):
-    `experiments.config.configure`."""
+    `experiments.config.configure`. calibration: a file whose wheel diameters and track
+    replace every source's (`experiments.calibration_override`). mitigations: applied to
+    every localizer (`experiments.mitigations`; one that does not apply to one of them,
+    or needs what a source lacks, fails before any run)."""
+    for loc in localizers:
+        check_calibration(resolve(mitigations, loc), calibration)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "results.db").unlink(missing_ok=True)  # this comparison's runs only, like the CSV
@@ -141,7 +150,11 @@ def compare(
         name = source_name(source)
         for loc in localizers:
             user = dict((overrides or {}).get(loc, {}))
-            configure(LOCALIZERS, loc, trial.metadata, user)  # bad settings fail first
+            mitigated = resolve(mitigations, loc)
+            check_source(mitigated, message_types(trial), name)
+            settings = {**mitigated.localizer_settings, **user}
+            built = configure(LOCALIZERS, loc, trial.metadata, settings)  # bad settings fail first
+            check_gyro(built.config, trial, name)
             for seed in range(seeds) if is_stochastic(loc) else [None]:
                 over = user if seed is None else {**user, "seed": seed}
                 run_dir = out / name / loc / ("run" if seed is None else f"seed{seed}")
@@ -155,6 +168,8 @@ def compare(
                     figures=False,
                     reference_map=False,
                     drag_metrics=False,
+                    calibration=calibration,
+                    mitigations=mitigations,
                 )
                 row = _row(name, loc, seed, res)
                 rows.append(row)

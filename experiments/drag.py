@@ -189,6 +189,32 @@ def brake_engaged_at(
     return (i >= 0) & (level[np.maximum(i, 0)] > threshold_nm)
 
 
+def heading_error_while_braking(
+    est: Trajectory,
+    truth: Trajectory,
+    commands: Sequence[BrakeCommand],
+    torque_off_nm: float,
+    threshold_nm: float,
+) -> dict[str, float]:
+    """How much the estimated heading's error grows while a brake is engaged — the
+    over-rotation slip causes. Per braking episode (a run of ground-truth times with a
+    brake engaged, `brake_engaged_at`), the change of the signed heading error from its
+    start to its end; `heading_error_braking_deg` sums their magnitudes over the trial,
+    `heading_error_per_episode_deg` is their mean, `braking_episodes` their number."""
+    t = truth.t
+    e = est.interpolate(t)
+    err = np.unwrap(np.remainder(e[:, 2] - truth.poses[:, 2] + np.pi, 2 * np.pi) - np.pi)
+    on = brake_engaged_at(commands, t, torque_off_nm, threshold_nm)
+    edges = np.diff(np.concatenate([[0], on.astype(int), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
+    added = np.degrees(np.abs(err[ends] - err[starts])) if len(starts) else np.zeros(0)
+    return {
+        "heading_error_braking_deg": float(added.sum()),
+        "heading_error_per_episode_deg": float(added.mean()) if len(added) else 0.0,
+        "braking_episodes": len(added),
+    }
+
+
 def yaw_rate(truth: Trajectory, times: np.ndarray, half_window_s: float = 0.1) -> np.ndarray:
     """Central-difference yaw rate [rad/s] of a trajectory at `times`."""
     th = np.unwrap(truth.poses[:, 2])

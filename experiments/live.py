@@ -39,16 +39,20 @@ import numpy as np
 
 from control.base import CONTROLLERS
 from control.safety import SafeController
+from experiments.calibration_override import CalibrationOverride, applied
 from experiments.config import configure
+from experiments.mitigations import Mitigated, check_calibration, resolve
 from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
 from hardware.arduino import ArduinoBoard, BoardConfig, BoardStats
-from hardware.calibration import WalkerCalibration, load_calibration
+from hardware.calibration import WalkerCalibration
 from hardware.clock import HostClock
 from hardware.errors import ConfigError
 from hardware.live import LiveSources
 from hardware.log import LogWriter
 from hardware.messages import BrakeCommand, DepthFrame, EncoderTicks, LaserScan, Message
+from mapping.mapper import MapperConfig
 from slam.base import LOCALIZERS, create
+from slam.motion import uses_gyro
 
 # What a live run's loop does unless told otherwise: a command right after every depth
 # frame (the lowest frame-to-command latency), at 10 Hz while frames stall, no simulated
@@ -71,6 +75,7 @@ class SimWalker:
     depth_size: tuple[int, int] = (160, 120)
     depth_rate_hz: int = 10
     firmware: bool = False  # the compiled firmware in simavr instead of the emulator
+    gyro: bool = False  # the walker's gyro, an IMU on the board
     cpus: tuple[int, ...] | None = None  # CPUs for the simulated walker (another machine)
 
 
@@ -90,6 +95,7 @@ class LiveOptions:
     duration_s: float | None = None
     localizer_overrides: dict[str, Any] = field(default_factory=dict)
     controller_overrides: dict[str, Any] = field(default_factory=dict)
+    mitigations: tuple[str, ...] = ()  # experiments.mitigations, before the overrides
     sim: SimWalker | None = None
     loop: LoopConfig = LIVE_LOOP
     board: BoardConfig = field(default_factory=BoardConfig)
@@ -230,6 +236,9 @@ class LiveRun:
         self.view_url: str | None = None  # the live view's address (foxglove_port)
         # what a run is made of (built by run())
         self.cal = WalkerCalibration()
+        self.calibration_file: CalibrationOverride | None = None  # --calibration
+        self.mitigated = Mitigated()  # --mitigation's effect (resolved in _check_options)
+        self.calibration_override: dict[str, Any] | None = None  # its record, with --sim
         self.devices: list[tuple[str, Any]] = []
         self.metadata: dict[str, Any] = {}
         self.board: ArduinoBoard | None = None
@@ -274,6 +283,7 @@ class LiveRun:
             str(sim.depth_rate_hz),
             "--board",
             "firmware" if sim.firmware else "emulator",
+            *(["--gyro"] if sim.gyro else []),
         ]
         self._world = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1
@@ -332,8 +342,10 @@ class LiveRun:
             self._world_dir = None
 
     def _calibration(self) -> WalkerCalibration:
-        opts = self.options
-        cal = load_calibration(opts.calibration) if opts.calibration else WalkerCalibration()
+        """The walker's calibration: --calibration's file (or the thesis walker's), with
+        the tag camera's calibration."""
+        opts, file = self.options, self.calibration_file
+        cal = file.calibration if file is not None else WalkerCalibration()
         if opts.camera_yaml:
             from hardware.camera_calibration import load_camera_yaml, with_tag_camera
 
@@ -386,10 +398,17 @@ class LiveRun:
         opts = self.options
         LOCALIZERS.spec(opts.localizer)
         CONTROLLERS.spec(opts.controller)
-        configure(LOCALIZERS, opts.localizer, None, opts.localizer_overrides)
+        self.mitigated = resolve(opts.mitigations, opts.localizer)
+        check_calibration(self.mitigated, opts.calibration)
+        configure(LOCALIZERS, opts.localizer, None, self._localizer_settings())
         if opts.sim is None and not opts.serial:
             raise LiveError("live needs --serial PORT (or --sim)")
+        self.calibration_file = CalibrationOverride.load(opts.calibration)
         return configure(CONTROLLERS, opts.controller, None, opts.controller_overrides).config
+
+    def _localizer_settings(self) -> dict[str, Any]:
+        """The mitigations' localizer fields, then --set."""
+        return {**self.mitigated.localizer_settings, **self.options.localizer_overrides}
 
     def _open_devices(self) -> None:
         """The simulated walker (--sim), the board (handshake), the cameras."""
@@ -403,7 +422,10 @@ class LiveRun:
             from hardware.sim.stream import SimSensors
 
             sensors = SimSensors(sock, self.clock)
-            self.cal = sensors.calibration
+            # the simulated walker's software calibration, with --calibration's odometry
+            self.cal, self.calibration_override = applied(
+                self.calibration_file, sensors.calibration
+            )
             self.devices.append(("sim", sensors))
         else:
             self.cal = self._calibration()
@@ -419,12 +441,20 @@ class LiveRun:
         safety layer, pipeline."""
         opts, cal = self.options, self.cal
         self.initial = (self.metadata.get("world") or {}).get("start_pose") or (0.0, 0.0, 0.0)
-        built = configure(LOCALIZERS, opts.localizer, self.metadata, opts.localizer_overrides)
+        built = configure(LOCALIZERS, opts.localizer, self.metadata, self._localizer_settings())
+        hs = self.board.handshake if self.board is not None else None
+        if uses_gyro(built.config) and (hs is None or hs.gyro_lsb_per_10dps is None):
+            raise LiveError(
+                f"{self.board.port if self.board else 'the board'}: the board reports no "
+                f"gyro (no IMU answered it) but {opts.localizer}.noise.gyro.enabled is set"
+            )
         self.proposed = built.proposed
         loc = create(opts.localizer, cal, built.config, initial_pose=tuple(self.initial))
         ctl = CONTROLLERS.create(opts.controller, cal, config=ctl_cfg)
         self._safe = SafeController(ctl, cal, opts.loop.safety)
-        self.pipeline = Pipeline(loc, cal, reference_map=False)
+        hygiene = self.mitigated.hygiene
+        mapper = MapperConfig(hygiene=hygiene) if hygiene is not None else None
+        self.pipeline = Pipeline(loc, cal, mapper, reference_map=False)
         self.config = self._config(loc, ctl_cfg, self.initial, self.proposed)
         self.latency = _Latency(self.clock, lambda frame: self._sources.arrival(frame))
 
@@ -567,6 +597,9 @@ class LiveRun:
                 "camera": opts.camera,
                 "camera_yaml": opts.camera_yaml,
             },
+            "calibration_file": opts.calibration,
+            "mitigations": self.mitigated.record(),
+            "calibration_override": self.calibration_override,
             "sim": asdict(opts.sim) if opts.sim is not None else None,
         }
 

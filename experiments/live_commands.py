@@ -15,7 +15,14 @@ import typer
 from rich.live import Live
 from rich.text import Text
 
-from experiments.cli_common import console, err_console, friendly, parse_size
+from experiments.cli_common import (
+    MitigationOpt,
+    console,
+    err_console,
+    friendly,
+    parse_mitigations,
+    parse_size,
+)
 from hardware.errors import ConfigError
 
 
@@ -137,7 +144,12 @@ _CameraFpsOpt = Annotated[
     typer.Option(help="pace a tag-camera video file or image folder to this rate"),
 ]
 _CalibrationOpt = Annotated[
-    Path | None, typer.Option(help="walker calibration JSON (default: the thesis walker)")
+    Path | None,
+    typer.Option(
+        help="walker calibration JSON (default: the thesis walker; e.g. from walkerslam "
+        "calibrate); with --sim its wheel diameters and track replace the simulated "
+        "walker's software calibration"
+    ),
 ]
 _RecordOpt = Annotated[
     Path | None, typer.Option(help="record every stream and command to this .mcap")
@@ -158,6 +170,10 @@ _SimOpt = Annotated[
 ]
 _FirmwareOpt = Annotated[
     bool, typer.Option("--firmware", help="--sim: the compiled firmware in simavr")
+]
+_GyroOpt = Annotated[
+    bool,
+    typer.Option("--gyro", help="--sim: the walker carries a yaw-rate gyro (an IMU on the board)"),
 ]
 _FoxgloveOpt = Annotated[
     bool, typer.Option("--foxglove", help="serve the streams to Foxglove (WebSocket)")
@@ -180,11 +196,13 @@ def live(
     camera_calibration: _CameraCalibrationOpt = None,
     camera_fps: _CameraFpsOpt = None,
     calibration: _CalibrationOpt = None,
+    mitigation: MitigationOpt = None,
     record: _RecordOpt = None,
     duration: Annotated[float | None, typer.Option(help="stop after this many s")] = None,
     set_: _SetOpt = None,
     sim: _SimOpt = False,
     firmware: _FirmwareOpt = False,
+    gyro: _GyroOpt = False,
     course: Annotated[str, typer.Option(help="--sim: course name or JSON")] = "thesis-course",
     seed: Annotated[int, typer.Option(help="--sim: random seed")] = 0,
     surface: Annotated[str, typer.Option(help="--sim: clean, dusty or S")] = "dusty",
@@ -204,10 +222,11 @@ def live(
     from experiments.live import LIVE_LOOP, LiveError, LiveOptions, LiveRun, SimWalker
 
     sets = _live_sets(localizer, controller, set_ or [])
+    names, mitigated = parse_mitigations(mitigation, localizer, calibration)
     if sim and (serial is not None or depth != "none" or camera != "none"):
         raise LiveError("--sim brings its own board and cameras: drop --serial/--depth/--camera")
-    if firmware and not sim:
-        raise LiveError("--firmware goes with --sim")
+    if (firmware or gyro) and not sim:
+        raise LiveError("--firmware and --gyro go with --sim")
     sim_walker = None
     if sim:
         sim_walker = SimWalker(
@@ -218,6 +237,7 @@ def live(
             depth_size=parse_size(depth_size),
             depth_rate_hz=depth_rate,
             firmware=firmware,
+            gyro=gyro or "gyro" in mitigated.simulated,
         )
     opts = LiveOptions(
         localizer=localizer,
@@ -232,6 +252,7 @@ def live(
         duration_s=duration,
         localizer_overrides=sets.get(localizer, {}),
         controller_overrides=sets.get(controller, {}),
+        mitigations=names,
         sim=sim_walker,
         foxglove_port=foxglove_port if foxglove else None,
         loop=replace(LIVE_LOOP, trigger=trigger, rate_hz=rate),

@@ -22,7 +22,8 @@ Topics. Every `hardware.messages` message goes out exactly as the trial log stor
 (`hardware.log`: same topics, schemas, payloads and frame ids, companion channels
 included), so a live view and a recorded log look alike in Foxglove:
 
-    /encoders /brakes/command /range_bearing /odometry/velocity /collisions /events
+    /encoders /brakes/command /range_bearing /odometry/velocity /imu/gyro /collisions
+    /events
     /tags/detections            json (walker.* JSON schemas)
     /depth/image                foxglove.RawImage 16UC1, frame "depth_optical"
     /depth/camera_info          foxglove.CameraCalibration

@@ -8,12 +8,14 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Iterable, Sequence
+from typing import Any
 
 import numpy as np
 from matplotlib.path import Path as MplPath
 
 from hardware.geometry import between
 from hardware.messages import BrakeCommand, Collision
+from slam.slip import slip_diagnostics
 from slam.trajectory import Trajectory
 
 COLLISION_KINDS = ("front", "side", "rear-wheel")
@@ -59,6 +61,18 @@ def ate(est: Trajectory, gt: Trajectory) -> dict[str, float]:
         "ate_rmse_m": float(np.sqrt(np.mean(np.sum((aligned - g[:, :2]) ** 2, axis=1)))),
         "ate_rmse_unaligned_m": float(np.sqrt(np.mean(np.sum((e[:, :2] - g[:, :2]) ** 2, axis=1)))),
         "final_position_error_m": float(np.hypot(*(e[-1, :2] - g[-1, :2]))),
+    }
+
+
+def heading_errors(est: Trajectory, gt: Trajectory) -> dict[str, float]:
+    """|θ_est − θ_true| (wrapped, unaligned: both start at the true start pose) at the
+    ground-truth times: at the end, its maximum and median [deg]."""
+    _, e, g = associate(est, gt)
+    err = np.degrees(np.abs(np.remainder(e[:, 2] - g[:, 2] + np.pi, 2 * np.pi) - np.pi))
+    return {
+        "final_heading_error_deg": float(err[-1]),
+        "heading_error_max_deg": float(err.max()),
+        "heading_error_median_deg": float(np.median(err)),
     }
 
 
@@ -148,6 +162,23 @@ def landmark_rmse(
         est = est @ alignment[0].T + alignment[1]
     d = est - np.array([np.asarray(truth[i], float) for i in common])
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+
+def slip_errors(k: np.ndarray, cov: np.ndarray, truth: dict[str, Any] | None) -> dict[str, Any]:
+    """A slip estimate (k_left, k_right) with its σ, and, when the source knows the true
+    slip (a simulated trial's metadata "slip"), the effective k it is judged against
+    (hardware.sim.slip) and the relative error of each wheel (None for a wheel that was
+    never braked)."""
+    reported = slip_diagnostics(k, cov)
+    out: dict[str, Any] = {"k": reported["slip_k"], "k_sigma": reported["slip_k_sigma"]}
+    true_k = (truth or {}).get("k_effective")
+    if true_k is not None:
+        out["k_true_effective"] = true_k
+        out["relative_error"] = [
+            None if t is None or t == 0 else float(e / t - 1.0)
+            for e, t in zip(out["k"], true_k, strict=True)
+        ]
+    return out
 
 
 def relation_errors(est: Trajectory, relations: np.ndarray) -> dict[str, float]:

@@ -32,6 +32,7 @@ from hardware.messages import (
     VelocityOdometry,
 )
 from hardware.source import CommandSink, TimedSource
+from mapping.hygiene import MapHygiene
 from mapping.mapper import MapperConfig, OccupancyMapper
 from slam.base import FrameConsumer, Localizer, MapScorer
 from slam.trajectory import Trajectory
@@ -78,6 +79,8 @@ class Pipeline:
         self.reference = OccupancyMapper(calibration, mapper_config) if reference_map else None
         self.recorded = Recorded()
         self._latest_truth: GroundTruthPose | None = None
+        hygiene = self.mapper.config.hygiene
+        self.hygiene = MapHygiene(hygiene) if hygiene.active else None
         if isinstance(localizer, MapScorer):  # it scores frames against the shared map
             localizer.attach_map(self.mapper)
         # A smoother revises past poses: keep its frames (keyed by time) to rebuild the map.
@@ -112,6 +115,8 @@ class Pipeline:
             rec.groundtruth.append((msg.x, msg.y, msg.theta))
         elif isinstance(msg, BrakeCommand):
             rec.commands.append(msg)
+            if self.hygiene is not None:
+                self.hygiene.brake_levels = self.calibration.brake.levels(msg)
         elif isinstance(msg, Collision):
             rec.collisions.append(msg)
 
@@ -123,12 +128,29 @@ class Pipeline:
             self.localizer.process_frame(msg, projection)
         else:
             self.localizer.process(msg)
-        key = msg.t if self._keep_frames else None
-        self.mapper.integrate_projection(projection, self.localizer.estimate().pose, key)
+        estimate = self.localizer.estimate()
+        if self._hygienic(msg.t, estimate):
+            key = msg.t if self._keep_frames else None
+            self.mapper.integrate_projection(projection, estimate.pose, key)
         truth = self._latest_truth
         if self.reference is not None and truth and abs(truth.t - msg.t) <= GROUNDTRUTH_TOLERANCE_S:
             pose = np.array([truth.x, truth.y, truth.theta])
             self.reference.integrate_projection(projection, pose)
+
+    def _hygienic(self, t: float, estimate) -> bool:
+        """Map hygiene before a frame is mapped (`mapping.hygiene`): reset the map when
+        due, fade it, and say whether the frame may be mapped."""
+        h = self.hygiene
+        if h is None:
+            return True
+        if h.due_reset(t):
+            if self._rebuild is not None:
+                self.finish_rebuild(wait=True)
+            self.mapper.reset()
+        factor = h.decay_factor(t)
+        if factor < 1.0:
+            self.mapper.grid.decay(factor)
+        return h.admit(t, estimate.pose, estimate.covariance)
 
     def rebuild_map(self, background: bool = False) -> bool:
         """Re-map the kept frames at the localizer's current (smoothed) trajectory, when it

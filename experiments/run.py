@@ -11,7 +11,7 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -20,19 +20,24 @@ import numpy as np
 from control.base import CONTROLLERS
 from experiments import drag
 from experiments import metrics as M
+from experiments.calibration_override import CalibrationOverride, applied
 from experiments.config import Configured, configure
 from experiments.drag import DragConfig
+from experiments.mitigations import Mitigated, check_calibration, check_source, resolve
 from experiments.pipeline import LoopConfig, Pipeline
 from experiments.simulation import VERSION, RunSpec, simulate
+from hardware.calibration import WalkerCalibration
 from hardware.datasets import Dataset
 from hardware.errors import ConfigError, UnknownNameError
 from hardware.log import TrialLog, read_log
+from hardware.messages import MESSAGE_TYPES, GyroRate
 from hardware.sim.simulator import SimConfig
 from hardware.sim.world import World
 from mapping.export import save_map_server
 from mapping.mapper import MapperConfig
 from slam import landmarks
-from slam.base import LOCALIZERS, LandmarkMapper, create
+from slam.base import LOCALIZERS, LandmarkMapper, SlipEstimator, create
+from slam.motion import uses_gyro
 
 # The mapper's obstacle band: what the map should show of the true world.
 MAP_BAND_M = (0.05, 2.0)
@@ -65,9 +70,13 @@ def simulate_trial(
     sim_config: SimConfig | None = None,
     loop: LoopConfig | None = None,
     progress: Callable[[float], None] | None = None,
+    calibration: CalibrationOverride | None = None,
+    mitigations: Sequence[str] = (),
 ) -> SimulateResult:
     """Simulate `course` in closed loop and record everything to an MCAP trial log
-    (`experiments.simulation.simulate`, the studies' trials' implementation too)."""
+    (`experiments.simulation.simulate`, the studies' trials' implementation too);
+    calibration: a file whose wheel diameters and track the software believes;
+    mitigations: of the live localizer and map (the walker carries what they need)."""
     spec = RunSpec(
         course,
         controller,
@@ -77,8 +86,11 @@ def simulate_trial(
         duration_s=duration_s,
         seed_localizer=False,
         log_path=str(out_path),
+        mitigations=tuple(mitigations),
     )
-    run = simulate(spec, sim_config=sim_config, loop=loop, progress=progress)
+    run = simulate(
+        spec, sim_config=sim_config, loop=loop, progress=progress, calibration=calibration
+    )
     return SimulateResult(
         Path(out_path),
         run.sim.t,
@@ -112,12 +124,15 @@ class _Replay:
     out: Path
     localizer: str
     built: Configured
+    calibration: WalkerCalibration  # the log's, or with --calibration's odometry
+    calibration_override: dict[str, Any] | None
     pipeline: Pipeline
     world: World | None
     true_landmarks: dict | None
     outlines: list
     drag_cfg: DragConfig
     controller: str | None
+    mitigated: Mitigated
     phantom: drag.PhantomSeries | None = None
     frame_drag: drag.FrameDrag | None = None
     recomputer: drag.CommandRecomputer | None = None
@@ -142,6 +157,8 @@ def replay_log(
     progress: Callable[[float], None] | None = None,
     phase: Callable[[str], None] | None = None,
     observers: Callable[[Pipeline], Sequence[Any]] | None = None,
+    calibration: CalibrationOverride | None = None,
+    mitigations: Sequence[str] = (),
 ) -> ReplayResult:
     """Run a recorded trial (a log path, an opened log or an opened dataset) through a
     localizer and the mapper; write estimates, maps, metrics against ground truth (when
@@ -167,10 +184,20 @@ def replay_log(
     (`FoxgloveView.observer`); their time is left out of the real-time factor too.
     progress(t): each message's time; phase(text): what happens after the messages
     (metrics, figures), for a progress display.
+    calibration: a calibration file whose wheel diameters and track replace the log's
+    (`experiments.calibration_override`; recorded in config.json).
+    mitigations: names of encoder-slip mitigations (`experiments.mitigations`): their
+    localizer fields come before `localizer_overrides`, their map hygiene replaces the
+    mapper config's; the source must hold what they need (recorded in config.json).
     """
+    mitigated = resolve(mitigations, localizer)
+    check_calibration(mitigated, calibration)
+    localizer_overrides = {**mitigated.localizer_settings, **(localizer_overrides or {})}
+    if mitigated.hygiene is not None:
+        mapper_config = replace(mapper_config or MapperConfig(), hygiene=mitigated.hygiene)
     r = _build(
         log, out_dir, localizer, localizer_config, localizer_overrides, mapper_config,
-        reference_map, controller, drag_config,
+        reference_map, controller, drag_config, calibration, mitigated,
     )  # fmt: skip
     _attach_evaluation(r, drag_metrics, observers)
     _run(r, progress)
@@ -184,6 +211,27 @@ def replay_log(
     return ReplayResult(r.out, metrics, duration, files, r.pipeline, r.world)
 
 
+def message_types(trial: TrialLog | Dataset) -> set[type]:
+    """The message types a log or dataset holds."""
+    if isinstance(trial, TrialLog):
+        return set(trial.topics.values())
+    counts = trial.counts()
+    return {t for t in MESSAGE_TYPES if counts.get(t.__name__, 0) > 0}
+
+
+def check_gyro(config: Any, trial: TrialLog | Dataset, name: str) -> None:
+    """ConfigError naming the source when a localizer's config asks for the gyro
+    (noise.gyro.enabled) and the source has no gyro messages: the user asked for the
+    gyro explicitly, so running without it would misreport what was measured."""
+    if not uses_gyro(config):
+        return
+    if GyroRate not in message_types(trial):
+        raise ConfigError(
+            f"{name}: no gyro messages (GyroRate, topic /imu/gyro) but noise.gyro.enabled "
+            "is set; record the trial with a gyro (simulate --gyro) or leave it off"
+        )
+
+
 def _out_dir(out_dir: str | Path) -> Path:
     """The output folder, made now (a user's mistake fails before the replay)."""
     out = Path(out_dir)
@@ -195,39 +243,42 @@ def _out_dir(out_dir: str | Path) -> Path:
 
 def _build(
     log, out_dir, localizer, localizer_config, overrides, mapper_config, reference_map,
-    controller, drag_config,
+    controller, drag_config, calibration_file, mitigated,
 ) -> _Replay:  # fmt: skip
-    """The source, the localizer's config, the localizer, the pipeline."""
+    """The source, the calibration, the localizer's config, the localizer, the pipeline."""
     trial = log if isinstance(log, TrialLog | Dataset) else read_log(log)
+    cal, override = applied(calibration_file, trial.calibration)
     log_path = str(trial.path) if isinstance(trial, TrialLog) else f"{trial.name}"
+    check_source(mitigated, message_types(trial), log_path)
+    if localizer_config is None:
+        built = configure(LOCALIZERS, localizer, trial.metadata, overrides or {})
+    else:
+        built = Configured(localizer_config)
+    check_gyro(built.config, trial, log_path)
     out = _out_dir(out_dir)
     if controller is not None:
         CONTROLLERS.spec(controller)  # an unknown name fails before the replay
     world = World.from_dict(trial.metadata["world"]) if "world" in trial.metadata else None
     true_landmarks = landmarks.from_metadata(trial.metadata)
-    if localizer_config is None:
-        built = configure(LOCALIZERS, localizer, trial.metadata, overrides or {})
-    else:
-        built = Configured(localizer_config)
     loc = create(
         localizer,
-        trial.calibration,
+        cal,
         built.config,
         initial_pose=trial.metadata.get("config", {}).get("initial_pose"),
         landmark_map=true_landmarks,
     )
-    pipeline = Pipeline(loc, trial.calibration, mapper_config, reference_map=reference_map)
+    pipeline = Pipeline(loc, cal, mapper_config, reference_map=reference_map)
     outlines = [p for _, p in world.footprint_polygons(*MAP_BAND_M)] if world is not None else []
     return _Replay(
-        trial, log_path, out, localizer, built, pipeline, world, true_landmarks, outlines,
-        drag_config or DragConfig(), controller,
+        trial, log_path, out, localizer, built, cal, override, pipeline, world, true_landmarks,
+        outlines, drag_config or DragConfig(), controller, mitigated,
     )  # fmt: skip
 
 
 def _attach_evaluation(r: _Replay, drag_metrics: bool, observers) -> None:
     """What watches the replay's messages: the drag metrics, a recomputing controller,
     the same controller at the true pose (over-steer), the caller's observers."""
-    pipeline, cal = r.pipeline, r.trial.calibration
+    pipeline, cal = r.pipeline, r.calibration
     truth = drag.TruthTracker()
     if r.world is not None and drag_metrics:
         r.phantom = drag.PhantomSeries(pipeline, r.outlines, r.drag_cfg)
@@ -259,7 +310,7 @@ def _run(r: _Replay, progress) -> None:
 def _evaluate(r: _Replay):
     """The metrics (metrics.json) and the ground-truth trajectory (when known); warns
     about dropped messages and a localizer's fallback."""
-    pipeline, cal = r.pipeline, r.trial.calibration
+    pipeline, cal = r.pipeline, r.calibration
     loc, rec = pipeline.localizer, pipeline.recorded
     duration = rec.t_last - rec.t_first if rec.counts else 0.0
     runtime = r.runtime_s
@@ -274,13 +325,18 @@ def _evaluate(r: _Replay):
     }
     estimated = None
     if r.true_landmarks is not None and isinstance(loc, LandmarkMapper):
-        estimated = {i: mean for i, (mean, _) in loc.landmarks().items()}
+        # none estimated (a map nothing observed, e.g. MTRX5700's beacons): no landmark metric
+        estimated = {i: mean for i, (mean, _) in loc.landmarks().items()} or None
+    if estimated is not None:
         metrics["landmark_rmse_unaligned_m"] = M.landmark_rmse(estimated, r.true_landmarks)
     _diagnostics(r, metrics)
+    if isinstance(loc, SlipEstimator) and (slip := loc.slip_estimate()) is not None:
+        metrics["slip"] = M.slip_errors(*slip, r.trial.metadata.get("slip"))
     est = loc.trajectory()
     gt = rec.groundtruth_trajectory()
     if gt is not None and len(est) > 1:
         metrics.update(M.ate(est, gt))
+        metrics.update(M.heading_errors(est, gt))
         metrics.update(M.rpe(est, gt))
         if estimated is not None:
             metrics["landmark_rmse_m"] = M.landmark_rmse(
@@ -300,6 +356,12 @@ def _evaluate(r: _Replay):
         off = cal.brake.torque_off_nm
         metrics["braking_impulse_nms"] = M.braking_impulse(rec.commands, off, rec.t_last)
         metrics["braking_impulse"] = M.braking_impulse_per_wheel(rec.commands, off, rec.t_last)
+        if gt is not None and len(est) > 1:
+            metrics.update(
+                drag.heading_error_while_braking(
+                    est, gt, rec.commands, off, r.drag_cfg.brake_threshold_nm
+                )
+            )
     return metrics, gt
 
 
@@ -351,6 +413,8 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
         files.update(
             write_figures(out, pipeline, est, gt, r.outlines, localizer=r.localizer, log=r.log_path)
         )
+    if pipeline.hygiene is not None:
+        metrics["map_hygiene"] = dict(pipeline.hygiene.counts)
     files["metrics"] = out / "metrics.json"
     files["metrics"].write_text(json.dumps(metrics, indent=2) + "\n")
     files["config"] = out / "config.json"
@@ -363,6 +427,8 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
         "source_localizer_settings": r.built.proposed,
         "source_localizer_settings_skipped": r.built.skipped,
         "localizer_overrides": r.built.overrides,
+        "mitigations": r.mitigated.record(),
+        "calibration_override": r.calibration_override,
         "mapper_config": _jsonable(pipeline.mapper.config),
         "controller": r.controller,
         "drag_config": asdict(r.drag_cfg),

@@ -18,12 +18,15 @@ from pathlib import Path
 from typing import Any
 
 from control.base import CONTROLLERS
+from experiments.calibration_override import CalibrationOverride, applied
 from experiments.config import checked, configure
+from experiments.mitigations import Mitigated, check_calibration, resolve
 from experiments.pipeline import FeedOrder, LoopConfig, Pipeline, run_closed_loop
 from hardware.log import LogWriter
 from hardware.sim.simulator import SimConfig, Simulator
 from hardware.sim.user import ConstantPush, UserProfile
 from hardware.sim.world import World, load_world
+from mapping.mapper import MapperConfig
 from slam.base import LOCALIZERS, create
 
 VERSION = metadata.version("walker-slam")  # from pyproject.toml, via the install
@@ -42,6 +45,8 @@ class RunSpec:
     left, turn) of the start pose in the course's start frame [m, m, rad];
     initial_speed_mps: forward speed at t = 0. log_path: record the trial there (None:
     no log). labels: study bookkeeping (cell, trial index, sweep value...).
+    mitigations: encoder-slip mitigations (`experiments.mitigations`) of the live
+    localizer and map; the simulated walker carries the sensors they need (a gyro).
     """
 
     course: str
@@ -59,6 +64,7 @@ class RunSpec:
     initial_speed_mps: float = 0.0
     log_path: str | None = None
     labels: dict[str, Any] = field(default_factory=dict)
+    mitigations: tuple[str, ...] = ()
 
 
 @dataclass
@@ -96,15 +102,17 @@ def _world(spec: RunSpec) -> World:
     return world
 
 
-def _localizer_config(spec: RunSpec, sim: Simulator) -> Any:
-    over = dict(spec.localizer_overrides)
+def _localizer_config(spec: RunSpec, sim: Simulator, mitigated: Mitigated) -> Any:
+    over = {**mitigated.localizer_settings, **dict(spec.localizer_overrides)}
     cfg = configure(LOCALIZERS, spec.localizer, sim.metadata, over).config
     if spec.seed_localizer and "seed" not in over and any(f.name == "seed" for f in fields(cfg)):
         cfg = replace(cfg, seed=spec.seed)
     return cfg
 
 
-def _run_config(spec: RunSpec, world, ctl_cfg, loc, loop, sim_cfg, command: str) -> dict:
+def _run_config(
+    spec: RunSpec, world, ctl_cfg, loc, loop, sim_cfg, command: str, override: dict | None
+) -> dict:
     return {
         "command": command,
         "walker_slam_version": VERSION,
@@ -123,7 +131,16 @@ def _run_config(spec: RunSpec, world, ctl_cfg, loc, loop, sim_cfg, command: str)
         ),
         "initial_speed_mps": spec.initial_speed_mps,
         "labels": dict(spec.labels),
+        "mitigations": list(spec.mitigations),
+        **({"calibration_override": override} if override is not None else {}),
     }
+
+
+def _carrying(cfg: SimConfig, mitigated: Mitigated) -> SimConfig:
+    """`cfg` with the simulated sensors the mitigations need switched on."""
+    if "gyro" in mitigated.simulated and not cfg.gyro.enabled:
+        cfg = replace(cfg, gyro=replace(cfg.gyro, enabled=True))
+    return cfg
 
 
 def simulate(
@@ -133,39 +150,51 @@ def simulate(
     loop: LoopConfig | None = None,
     progress: Callable[[float], None] | None = None,
     command: str = "simulate",
+    calibration: CalibrationOverride | None = None,
 ) -> Simulated:
     """Run the trial `spec` (see the module docstring); sim_config: the simulator's other
     settings (e.g. the depth image size), its surface, seed, duration and user profile
-    taken from the spec."""
+    taken from the spec; calibration: a file whose wheel diameters and track the walker's
+    software believes instead (the simulated walker's truth stays)."""
     world = _world(spec)
     ctl_cfg = configure(CONTROLLERS, spec.controller, None, spec.controller_overrides).config
+    mitigated = resolve(spec.mitigations, spec.localizer)
+    check_calibration(mitigated, calibration)
     sim_cfg = checked(
-        lambda: replace(
-            sim_config or SimConfig(),
-            surface=spec.surface,
-            seed=spec.seed,
-            duration_s=spec.duration_s,
-            user_profile=spec.user_profile,
+        lambda: _carrying(
+            replace(
+                sim_config or SimConfig(),
+                surface=spec.surface,
+                seed=spec.seed,
+                duration_s=spec.duration_s,
+                user_profile=spec.user_profile,
+            ),
+            mitigated,
         ),
         "simulation",
     )
     user = ConstantPush(*spec.push_n) if spec.push_n is not None else None
-    sim = Simulator(world, sim_cfg, user=user)
+    believed, override = applied(calibration, sim_cfg.calibration())
+    sim = Simulator(world, sim_cfg, user=user, calibration=believed)
     sim.state.v = float(spec.initial_speed_mps)
     cal = sim.calibration
     # the trial proposes its simulated encoders' noise to every later replay; the live
     # localizer takes it too, so a live run and its replay are the same run
-    loc = create(spec.localizer, cal, _localizer_config(spec, sim), initial_pose=world.start_pose)
+    loc = create(
+        spec.localizer, cal, _localizer_config(spec, sim, mitigated), initial_pose=world.start_pose
+    )
     ctl = CONTROLLERS.create(spec.controller, cal, config=ctl_cfg)
     loop = loop or LoopConfig()
-    config = _run_config(spec, world, ctl_cfg, loc, loop, sim_cfg, command)
-    pipeline = Pipeline(loc, cal, reference_map=False)
+    config = _run_config(spec, world, ctl_cfg, loc, loop, sim_cfg, command, override)
+    mapper = MapperConfig(hygiene=mitigated.hygiene) if mitigated.hygiene is not None else None
+    pipeline = Pipeline(loc, cal, mapper, reference_map=False)
     t0 = time.perf_counter()
     if spec.log_path:
         path = Path(spec.log_path)
         path.parent.mkdir(parents=True, exist_ok=True)
         with LogWriter(path, cal, metadata={"config": config, **sim.metadata}) as log:
             run_closed_loop(sim, sim, pipeline, ctl, loop, record=FeedOrder(log), progress=progress)
+            log.add_metadata("slip", sim.slip_summary())
     else:
         run_closed_loop(sim, sim, pipeline, ctl, loop, progress=progress)
     return Simulated(sim, world, pipeline, config, time.perf_counter() - t0)

@@ -1,4 +1,4 @@
-"""`walkerslam course-study` and `walkerslam corner-study`: the simulated user studies
+"""`walkerslam course-study`, `corner-study` and `slip-study`: the simulated user studies
 (`experiments.studies`). `register(app)` adds them to the CLI; errors follow the CLI's
 rule (one line `error: …`, exit 2)."""
 
@@ -228,7 +228,85 @@ def corner_study(
     print_files(res.files)
 
 
+def slip_study(
+    surface: Annotated[
+        str, typer.Option(help="surfaces: clean, dusty or slip coefficients, by commas")
+    ] = "clean,dusty,0.2",
+    localizers: Annotated[
+        str, typer.Option(help="localizers, separated by commas")
+    ] = "dead-reckoning",
+    mitigations: Annotated[
+        str,
+        typer.Option(
+            help="mitigation sets, separated by commas; a set joins names with + (e.g. "
+            "none,gyro,gyro+map-hygiene); 'none' is the baseline of the ranking"
+        ),
+    ] = "none,gyro,map-hygiene",
+    controllers: Annotated[
+        str, typer.Option(help="controllers, separated by commas")
+    ] = "open-loop",
+    trials: Annotated[int, typer.Option(help="simulated users per cell")] = 10,
+    out: Annotated[Path, typer.Option(help="output folder")] = Path("out/slip-study"),
+    engine: EngineOpt = "local",
+    address: AddressOpt = None,
+    workers: WorkersOpt = None,
+    duration: Annotated[float, typer.Option(help="longest simulated trial [s]")] = 300.0,
+    seed: Annotated[int, typer.Option(help="user i has seed SEED + i")] = 0,
+    course: Annotated[
+        str, typer.Option(help="built-in course name or a course JSON file")
+    ] = "thesis-course",
+    calibration: Annotated[
+        Path | None,
+        typer.Option(help="the calibration file of the 'calibration' mitigation"),
+    ] = None,
+    set_: SetOpt = None,
+    logs: LogsOpt = True,
+) -> None:
+    """Encoder-slip mitigations against slip severity: N paired users per cell surface ×
+    localizer × mitigation set × controller; per run collisions, ATE, heading error
+    while braking, phantom area, obstacle drag, over-steer, braking, runtime
+    (results.db); figures of each metric against slip with 95 % bands; report.md ranks
+    the mitigations (paired differences against none, 95 % intervals)."""
+    from control.base import CONTROLLERS
+    from experiments.config import parse_sets
+    from experiments.mitigations import parse
+    from experiments.studies.engine import check
+    from experiments.studies.slip_report import ranking_table
+    from experiments.studies.slip_study import SlipStudy, run_slip_study
+    from slam.base import LOCALIZERS
+
+    ctl, locs = _split(controllers), _split(localizers)
+    registries = {**{c: CONTROLLERS for c in ctl}, **{n: LOCALIZERS for n in locs}}
+    for c in ctl:
+        CONTROLLERS.spec(c)
+    for n in locs:
+        LOCALIZERS.spec(n)
+    study = SlipStudy(
+        surfaces=_split(surface),
+        localizers=locs,
+        mitigations=tuple(dict.fromkeys(parse(m) for m in _split(mitigations))),
+        controllers=ctl,
+        trials=trials,
+        seed=seed,
+        duration_s=duration,
+        course=course,
+        settings=parse_sets(set_ or [], registries, registries),
+        keep_logs=logs,
+        calibration=str(calibration) if calibration else None,
+    )
+    study.validate()
+    check(engine, workers, address)
+    with runs_bar(f"slip study ({engine})") as update:
+        res = run_slip_study(
+            study, out, engine=engine, workers=workers, address=address, progress=update
+        )
+    if res.table:
+        console.print(ranking_table(res.table), highlight=False, soft_wrap=True, markup=False)
+    print_files({k: p for k, p in res.files.items() if not k.startswith("figure_")})
+
+
 def register(app: typer.Typer) -> None:
     """Add the study commands to `app` (the `walkerslam` CLI)."""
     app.command(name="course-study")(friendly(course_study))
     app.command(name="corner-study")(friendly(corner_study))
+    app.command(name="slip-study")(friendly(slip_study))

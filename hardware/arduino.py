@@ -5,7 +5,7 @@
 
     board = ArduinoBoard("/dev/ttyACM0", calibration, HostClock())
     board.open()                      # handshake; BoardError (one line) if it fails
-    for msg in board.messages():      # EncoderTicks (100 Hz) and DeviceEvents, blocking
+    for msg in board.messages():      # EncoderTicks (100 Hz), GyroRate, DeviceEvents
         ...
     board.send(BrakeCommand(t, 1.2, 0.068))   # torques → PWM through the calibration
     board.close()                     # sends zero brake, ends messages()
@@ -41,6 +41,11 @@ What it does with the board's lines (`hardware/firmware/PROTOCOL.md`):
   `close()` sends zero before it lets go of the port.
 - **DTR**: `reset_on_open` pulses DTR to reset an Uno (as its bootloader expects); a
   port where DTR cannot be set (a pseudo-terminal) is tolerated.
+- **gyro**: a board with an IMU announces the scale of its gyro field in `H`; each tick
+  report's gyro z rate becomes a GyroRate (rad/s, CCW positive with the IMU's z axis
+  up; `gyro_sign` -1 for one mounted upside down), stamped as the report and yielded
+  just before its EncoderTicks. A report without the field (no IMU, a failed read)
+  gives none.
 """
 
 from __future__ import annotations
@@ -61,7 +66,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
 from hardware.clock import ClockMap, HostClock
 from hardware.errors import DeviceError
-from hardware.messages import BrakeCommand, DeviceEvent, EncoderTicks, Message
+from hardware.messages import BrakeCommand, DeviceEvent, EncoderTicks, GyroRate, Message
 
 
 class BoardError(DeviceError):
@@ -90,7 +95,9 @@ class BoardConfig:
     port lost and back, the board still running): "drop" re-bases them, so the
     localizer sees no motion rather than a jump (the count difference is kept in a
     DeviceEvent "rebased"); "keep" integrates it as one increment (the wheels' turn, hence
-    the heading change, is exact; the path between is not).
+    the heading change, is exact; the path between is not). gyro_sign: +1 when the
+    board's IMU has its z axis up (a yaw rate CCW seen from above is positive), -1 when
+    it is mounted upside down.
     """
 
     baud: int = bp.BAUD
@@ -104,9 +111,12 @@ class BoardConfig:
     reset_on_open: bool = False
     check_cpr: bool = True
     gap_motion: GapMotion = GapMotion.DROP
+    gyro_sign: int = 1
 
     def __post_init__(self) -> None:
         coerce(self, gap_motion=GapMotion)
+        if self.gyro_sign not in (1, -1):
+            raise ValueError(f"gyro_sign must be 1 or -1, got {self.gyro_sign}")
         if not self.resend_hz >= 1.0 / bp.COMMAND_TIMEOUT_S * 2:
             raise ValueError(
                 f"resend_hz must be >= {2 / bp.COMMAND_TIMEOUT_S:.1f} (twice per board "
@@ -213,6 +223,7 @@ class ArduinoBoard:
                 rate_hz=h.rate_hz,
                 counts_per_rev=h.cpr,
                 reset_cause=h.reset_cause,
+                gyro_lsb_per_10dps=h.gyro_lsb_per_10dps,
             )
         return {"board": info}
 
@@ -301,9 +312,10 @@ class ArduinoBoard:
         return self.clock.now()
 
     def _describe(self, hs: bp.Handshake) -> str:
+        gyro = "no gyro" if hs.gyro_lsb_per_10dps is None else "a gyro"
         return (
             f"firmware {hs.firmware}, protocol {hs.proto}, {hs.rate_hz} Hz, "
-            f"{hs.cpr} counts/rev, reset cause {hs.reset_cause}"
+            f"{hs.cpr} counts/rev, {gyro}, reset cause {hs.reset_cause}"
         )
 
     def _open_port(self) -> None:
@@ -480,6 +492,10 @@ class ArduinoBoard:
         self.stats.ticks += 1
         self.stats.last_tick = tick
         t = self.clock_map.to_host(board_t, not_after=arrival)
+        scale = self.handshake.gyro_lsb_per_10dps if self.handshake is not None else None
+        if tick.gyro_z is not None and scale:
+            rate = self.config.gyro_sign * bp.gyro_rate(tick.gyro_z, scale)
+            self._pending.append(GyroRate(t, rate))
         self._pending.append(EncoderTicks(t, left, right))
 
     def _across_gap(self, tick: bp.Tick, arrival: float) -> None:

@@ -13,6 +13,10 @@ set the simulated brakes) and quick tests of the driver; the protocol itself is 
 against the real firmware in simavr (`hardware.firmware_sim`), which has the same
 `port`, `set_counts` and `brake_outputs`.
 
+With `imu=True` it also emulates the firmware with an MPU-6050 on its I²C bus: the
+handshake announces the gyro's scale and every tick report carries the rate last given to
+`set_gyro_rate` as the IMU's int16 output (131 LSB per °/s).
+
 For fault tests: `reset()` restarts it (counts, sequence and clock from zero, brakes
 released, a boot handshake line), `unplug()` / `replug()` close the pty and make a new
 one at the same path, `inject(data)` sends raw bytes to the host; `clock_drift_ppm`,
@@ -46,6 +50,7 @@ class BoardEmulator:
         clock_drift_ppm: float = 0.0,
         t_us_start: int = 0,
         count_offset: int = 0,
+        imu: bool = False,
     ) -> None:
         self.link = Path(link) if link is not None else None
         self.rate_hz = rate_hz
@@ -53,6 +58,8 @@ class BoardEmulator:
         self.drift = clock_drift_ppm * 1e-6
         self.t_us_start = t_us_start
         self.count_offset = count_offset
+        self.imu = imu
+        self._gyro_raw = 0
         self.rx = {"lines": 0, "bad_crc": 0, "malformed": 0, "overflow": 0}
         self.cmd_timeouts = 0
         self.cmd_seq_gaps = 0
@@ -74,6 +81,11 @@ class BoardEmulator:
         """The wheels' cumulative encoder counts now (e.g. the simulator's)."""
         with self._lock:
             self._counts = (int(left), int(right))
+
+    def set_gyro_rate(self, rate_rad_s: float) -> None:
+        """The yaw rate the emulated IMU measures now [rad/s] (with `imu=True`)."""
+        with self._lock:
+            self._gyro_raw = bp.gyro_raw(rate_rad_s)
 
     def brake_outputs(self) -> tuple[float, int, int]:
         """(time, left duty, right duty) applied now (0 while the command timed out)."""
@@ -174,7 +186,12 @@ class BoardEmulator:
 
     def _handshake(self) -> bp.Handshake:
         return bp.Handshake(
-            bp.PROTOCOL_VERSION, EMULATOR_VERSION, self.rate_hz, self.cpr, self._reset_flags
+            bp.PROTOCOL_VERSION,
+            EMULATOR_VERSION,
+            self.rate_hz,
+            self.cpr,
+            self._reset_flags,
+            bp.GYRO_LSB_PER_10DPS if self.imu else None,
         )
 
     def _status(self) -> bp.Status:
@@ -228,6 +245,7 @@ class BoardEmulator:
             self._pwm[0],
             self._pwm[1],
             flags,
+            self._gyro_raw if self.imu else None,
         )
         self._send(tick.line())
         self._seq = (self._seq + 1) % bp.UINT32

@@ -13,6 +13,7 @@ the line belongs to ("crc", "malformed", "overflow").
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 
@@ -23,6 +24,8 @@ TICK_TIMEOUT_FLAG = 0x01  # T flags bit 0: no valid B line within 300 ms (brakes
 TICK_QUAD_ERROR_FLAG = 0x02  # T flags bit 1: a quadrature error since the last report
 COMMAND_TIMEOUT_S = 0.3  # the board releases both brakes this long after the last B line
 UINT32 = 1 << 32
+GYRO_LSB_PER_10DPS = 1310  # an MPU-6050 at ±250 °/s: 131 LSB per °/s (H announces it)
+_I16 = (-(1 << 15), (1 << 15) - 1)
 
 _VERSION_RE = re.compile(rb"^[0-9A-Za-z._-]{1,16}$")
 
@@ -106,14 +109,29 @@ _I32 = (-(1 << 31), (1 << 31) - 1)
 _PWM = (0, 255)
 
 
+def gyro_rate(raw: int, lsb_per_10dps: int) -> float:
+    """A T line's gyro field [LSB] as a yaw rate [rad/s], with the scale H announced."""
+    return math.radians(raw * 10.0 / lsb_per_10dps)
+
+
+def gyro_raw(rate_rad_s: float, lsb_per_10dps: int = GYRO_LSB_PER_10DPS) -> int:
+    """A yaw rate [rad/s] as the gyro's int16 output (rounded, saturated at its range)."""
+    lsb = round(math.degrees(rate_rad_s) * lsb_per_10dps / 10.0)
+    return min(max(lsb, _I16[0]), _I16[1])
+
+
 # -- board -> host -----------------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
 class Handshake:
+    """`gyro_lsb_per_10dps`: the scale of the T lines' gyro field (LSB per 10 °/s),
+    None when the board has no gyro (the optional sixth field)."""
+
     proto: int
     firmware: str
     rate_hz: int
     cpr: int
     reset_flags: int
+    gyro_lsb_per_10dps: int | None = None
 
     RESET_CAUSES = ((1, "power-on"), (2, "external"), (4, "brown-out"), (8, "watchdog"))
 
@@ -123,11 +141,16 @@ class Handshake:
         return "+".join(names) or "unknown"
 
     def line(self) -> bytes:
-        return encode("H", self.proto, self.firmware, self.rate_hz, self.cpr, self.reset_flags)
+        fields = (self.proto, self.firmware, self.rate_hz, self.cpr, self.reset_flags)
+        gyro = () if self.gyro_lsb_per_10dps is None else (self.gyro_lsb_per_10dps,)
+        return encode("H", *fields, *gyro)
 
 
 @dataclass(frozen=True, slots=True)
 class Tick:
+    """`gyro_z`: the gyro's z rate [LSB, int16] read for this report, None when the
+    board has no gyro or the read failed (the optional eighth field)."""
+
     seq: int
     t_us: int
     left: int
@@ -135,12 +158,14 @@ class Tick:
     pwm_left: int
     pwm_right: int
     flags: int
+    gyro_z: int | None = None
 
     @property
     def timed_out(self) -> bool:
         return bool(self.flags & TICK_TIMEOUT_FLAG)
 
     def line(self) -> bytes:
+        gyro = () if self.gyro_z is None else (self.gyro_z,)
         return encode(
             "T",
             self.seq,
@@ -150,6 +175,7 @@ class Tick:
             self.pwm_left,
             self.pwm_right,
             self.flags,
+            *gyro,
         )
 
 
@@ -185,6 +211,7 @@ def parse_board_line(line: bytes) -> BoardMessage:
             _int(f[4], *_PWM, line),
             _int(f[5], *_PWM, line),
             _int(f[6], 0, 255, line),
+            _int(f[7], *_I16, line) if len(f) > 7 else None,
         )
     if kind == b"S":
         if len(f) < 8:
@@ -201,6 +228,7 @@ def parse_board_line(line: bytes) -> BoardMessage:
             _int(f[2], 1, 500, line),
             _int(f[3], 1, 1 << 20, line),
             _int(f[4], 0, 255, line),
+            _int(f[5], 1, 65535, line) if len(f) > 5 else None,
         )
     raise LineError("malformed", line, f"unknown board line type {kind!r}")
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -62,8 +62,24 @@ class BrakeCalibration:
     def torque(self, pwm: float) -> float:
         return self.torque_off_nm + self.slope_nm_per_pwm * float(min(max(pwm, 0), self.pwm_max))
 
+    def level(self, torque_nm: float) -> float:
+        """How far `torque_nm` is engaged above the residual torque, as a share of the
+        brake's range (0 released, 1 full), clipped to [0, 1]."""
+        span = self.torque_max_nm - self.torque_off_nm
+        return min(max((torque_nm - self.torque_off_nm) / span, 0.0), 1.0)
+
+    def levels(self, cmd: Any) -> tuple[float, float]:
+        """(left, right) `level` of a BrakeCommand."""
+        return self.level(cmd.left_nm), self.level(cmd.right_nm)
+
     def clamp(self, torque_nm: float) -> float:
         return float(min(max(torque_nm, self.torque_off_nm), self.torque_max_nm))
+
+
+def wheel_diameters(mean_m: float, ratio: float) -> tuple[float, float]:
+    """(left, right) diameters whose mean is `mean_m` and ratio right/left `ratio`
+    (ratio 1: both exactly `mean_m`)."""
+    return 2.0 * mean_m / (1.0 + ratio), 2.0 * mean_m * ratio / (1.0 + ratio)
 
 
 def _kinect_depth() -> CameraIntrinsics:
@@ -76,7 +92,13 @@ def _kinect_rgb() -> CameraIntrinsics:
 
 @dataclass(frozen=True)
 class WalkerCalibration:
-    """Encoder, geometry and sensor calibration of the walker (defaults: the thesis walker)."""
+    """Encoder, geometry and sensor calibration of the walker (defaults: the thesis walker).
+
+    The two rear wheels may differ: wheel_diameter_m is their mean diameter and
+    wheel_diameter_ratio the right wheel's diameter over the left's (UMBmark's E_d; 1.0:
+    equal wheels, what a calibration without the key means). `walkerslam calibrate`
+    estimates both and the track from a UMBmark run (`experiments.umbmark`).
+    """
 
     wheel_diameter_m: float = 0.203  # the thesis code's value; measured 0.204 ± 0.002
     track_m: float = 0.64  # rear-wheel contact track (0.68 in the dimensions table)
@@ -91,10 +113,34 @@ class WalkerCalibration:
     brake: BrakeCalibration = field(default_factory=BrakeCalibration)
     frame_width_m: float = 0.69  # overall width at the rear wheels
     frame_length_m: float = 0.74
+    wheel_diameter_ratio: float = 1.0  # right / left wheel diameter
+
+    def __post_init__(self) -> None:
+        r = self.wheel_diameter_ratio
+        if (
+            isinstance(r, bool)
+            or not isinstance(r, int | float)
+            or not (math.isfinite(r) and r > 0)
+        ):
+            raise ValueError(f"wheel_diameter_ratio must be a number > 0, got {r!r}")
 
     @property
     def metres_per_count(self) -> float:
+        """Ground distance per encoder count of the mean wheel."""
         return math.pi * self.wheel_diameter_m / self.counts_per_rev
+
+    @property
+    def wheel_diameters_m(self) -> tuple[float, float]:
+        """(left, right) wheel diameters: mean wheel_diameter_m, ratio wheel_diameter_ratio
+        (with equal wheels both are exactly wheel_diameter_m)."""
+        return wheel_diameters(self.wheel_diameter_m, self.wheel_diameter_ratio)
+
+    @property
+    def metres_per_count_per_wheel(self) -> tuple[float, float]:
+        """(left, right) ground distance per encoder count: what odometry multiplies the
+        counts of each wheel by."""
+        left, right = self.wheel_diameters_m
+        return math.pi * left / self.counts_per_rev, math.pi * right / self.counts_per_rev
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -125,8 +171,41 @@ def load_calibration(path: str | os.PathLike[str]) -> WalkerCalibration:
     keep the thesis walker's defaults); ValueError on one line naming the file."""
     p = Path(path)
     try:
-        return WalkerCalibration.from_dict(json.loads(p.read_text()))
+        d = json.loads(p.read_text())
+        if not isinstance(d, dict):
+            raise ValueError(f"expected an object of calibration fields, got {type(d).__name__}")
+        return WalkerCalibration.from_dict(d)
     except FileNotFoundError:
         raise ConfigError(f"{p}: no such calibration file") from None
     except (OSError, TypeError, ValueError) as e:
         raise ConfigError(f"{p}: not a walker calibration: {e}") from None
+
+
+def save_calibration(calibration: WalkerCalibration, path: str | os.PathLike[str]) -> Path:
+    """Write `calibration` as the JSON file `load_calibration` reads back exactly."""
+    p = Path(path)
+    p.write_text(json.dumps(calibration.to_dict(), indent=2) + "\n")
+    return p
+
+
+# What odometry from wheel encoders needs of a calibration (besides counts_per_rev).
+ODOMETRY_FIELDS = ("wheel_diameter_m", "wheel_diameter_ratio", "track_m")
+
+
+def odometry_fields(calibration: WalkerCalibration) -> dict[str, float]:
+    """The wheel diameters and the track of `calibration`, by field name."""
+    return {k: getattr(calibration, k) for k in ODOMETRY_FIELDS}
+
+
+def with_odometry(
+    calibration: WalkerCalibration, source: WalkerCalibration, source_name: str
+) -> WalkerCalibration:
+    """`calibration` (e.g. a log's: its cameras, brakes, encoders) with the wheel
+    diameters and track of `source` (e.g. a `walkerslam calibrate` file named
+    `source_name`); ConfigError when the two count encoder revolutions differently."""
+    if source.counts_per_rev != calibration.counts_per_rev:
+        raise ConfigError(
+            f"{source_name}: calibrated for {source.counts_per_rev} counts per revolution, "
+            f"the encoders count {calibration.counts_per_rev}"
+        )
+    return replace(calibration, **odometry_fields(source))

@@ -39,3 +39,8 @@ class UnknownNameError(WalkerSlamError):
 class DeviceError(WalkerSlamError):
     """A live device that cannot be used: missing, not answering, the wrong firmware,
     failed during a run (hardware.arduino, hardware.depth, hardware.tags, hardware.live)."""
+
+
+class CalibrationError(WalkerSlamError):
+    """A calibration run that cannot be used: no laps of a square found, only one
+    direction, an estimate that does not settle (slam.umbmark, experiments.calibrate)."""

@@ -34,6 +34,9 @@ each line the AVR transmitted while `tx_events` is on, "reset" (MCUSR flags),
 Wheel positions (`counts()`, `set_counts`) are the edges the harness generated since it
 started, the encoders' "true" counts; the board counts from 0 again after a reset.
 
+With `imu=True` the harness puts an MPU-6050 on the AVR's I²C bus (TWI); `set_gyro` /
+`set_gyro_rate` set the z rate it outputs, `imu_registers()` what the firmware wrote.
+
 `build()` runs `make -C hardware/firmware` when an output is missing or older than its
 sources; it raises FirmwareSimError with one line naming the Debian package to install
 when avr-gcc or the simavr headers are missing.
@@ -53,6 +56,8 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+
+from hardware import board_protocol as bp
 
 FIRMWARE_DIR = Path(__file__).resolve().parent / "firmware"
 BUILD_DIR = FIRMWARE_DIR / "build"
@@ -165,7 +170,8 @@ class FirmwareSim:
     (FIRMWARE_ELF; TEST_FIRMWARE_ELF has the watchdog-test hang). speed: simulated per
     wall-clock time (0: as fast as possible). tx_events: report every line the AVR sends
     as a "tx" event. edge_rate_hz: the fastest `set_counts` moves a wheel. timeout_s:
-    the wall-clock limit of every wait for the harness (generous: a loaded machine)."""
+    the wall-clock limit of every wait for the harness (generous: a loaded machine).
+    imu: an MPU-6050 on the I²C bus (without it nobody answers there)."""
 
     def __init__(
         self,
@@ -177,6 +183,7 @@ class FirmwareSim:
         edge_rate_hz: float = 10_000.0,
         build_if_needed: bool = True,
         timeout_s: float = 30.0,
+        imu: bool = False,
     ) -> None:
         if build_if_needed:
             build()
@@ -201,6 +208,8 @@ class FirmwareSim:
         args = [str(HARNESS), "-s", str(speed), "-r", str(edge_rate_hz), "-l", self.port]
         if tx_events:
             args.append("-t")
+        if imu:
+            args.append("-i")
         args.append(str(self.elf))
         self._proc = subprocess.Popen(
             args,
@@ -436,6 +445,22 @@ class FirmwareSim:
             a, b, com_a, com_b = (int(v) for v in e.args[:4])
             left, right = (a if com_a else 0), (b if com_b else 0)
         return t_ns * 1e-9, left, right
+
+    # -- the IMU (imu=True) ----------------------------------------------------------
+    def set_gyro(self, raw: int) -> None:
+        """The IMU's z-rate output from now on, in LSB (int16). Does not wait for the
+        harness (as set_counts); a refusal is raised by the next call that waits."""
+        self._send(f"gyro {int(raw)}", wait=False)
+
+    def set_gyro_rate(self, rate_rad_s: float) -> None:
+        """The yaw rate the IMU measures now [rad/s] (131 LSB per °/s, as configured)."""
+        self.set_gyro(bp.gyro_raw(rate_rad_s))
+
+    def imu_registers(self) -> dict[str, int]:
+        """What the firmware set in the IMU (pwr_mgmt_1, smplrt_div, config, gyro_config)
+        and how often it read GYRO_ZOUT_H (gz_reads)."""
+        names = ("pwr_mgmt_1", "smplrt_div", "config", "gyro_config", "gz_reads")
+        return dict(zip(names, (int(v) for v in self._request("imu")), strict=True))
 
     # -- faults ----------------------------------------------------------------------
     def inject(self, data: bytes) -> None:

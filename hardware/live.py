@@ -35,6 +35,7 @@ DROPPABLE = (DepthFrame, LaserScan, TagDetections)
 # collisions and commands come when they come).
 CONTINUOUS = (
     "EncoderTicks",
+    "GyroRate",
     "VelocityOdometry",
     "DepthFrame",
     "LaserScan",

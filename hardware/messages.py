@@ -117,6 +117,20 @@ class VelocityOdometry:
     omega: float
 
 
+@dataclass(frozen=True, slots=True)
+class GyroRate:
+    """Yaw rate [rad/s] of the walker body from its gyro: the z-axis angular rate, CCW
+    positive, as the sensor reports it (its bias and scale error included).
+
+    A MEMS gyro's output is low-pass filtered and sampled; the rate is taken as the mean
+    over the interval since the gyro's previous sample, so that the samples, each held
+    over the interval it ends, integrate to the angle turned.
+    """
+
+    t: float
+    rate_rad_s: float
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class LaserScan:
     """Planar range scan in the robot frame; beam i is at angle_min + i·angle_increment.
@@ -177,6 +191,30 @@ class DeviceEvent:
     detail: str = ""
 
 
+@dataclass(frozen=True, slots=True)
+class CompassHeading:
+    """The walker's heading [rad] in the map frame (CCW from +x, wrapped to (−π, π]) from
+    an absolute sensor (a compass, a simulator's noisy true heading), with its standard
+    deviation [rad] when the source knows it, NaN otherwise (a localizer then uses its
+    configured noise, slam.absolute.AbsoluteConfig)."""
+
+    t: float
+    heading_rad: float
+    sigma_rad: float = float("nan")
+
+
+@dataclass(frozen=True, slots=True)
+class PositionFix:
+    """An absolute position [m] of the walker's reference point (the rear-axle centre) in
+    the map frame, e.g. a GPS fix projected to local metres, with its standard deviation
+    per axis [m] when the source knows it, NaN otherwise."""
+
+    t: float
+    x: float
+    y: float
+    sigma_m: float = float("nan")
+
+
 Message = (
     EncoderTicks
     | BrakeCommand
@@ -184,10 +222,13 @@ Message = (
     | TagDetections
     | RangeBearing
     | VelocityOdometry
+    | GyroRate
     | LaserScan
     | GroundTruthPose
     | Collision
     | DeviceEvent
+    | CompassHeading
+    | PositionFix
 )
 
 MESSAGE_TYPES: tuple[type, ...] = (
@@ -197,10 +238,13 @@ MESSAGE_TYPES: tuple[type, ...] = (
     TagDetections,
     RangeBearing,
     VelocityOdometry,
+    GyroRate,
     LaserScan,
     GroundTruthPose,
     Collision,
     DeviceEvent,
+    CompassHeading,
+    PositionFix,
 )
 
 

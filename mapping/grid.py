@@ -133,6 +133,11 @@ class GridExtent(ABC):
         self._offset = np.zeros(2, dtype=np.int64)  # lattice (i, j) of array cell [0, 0]
         self._layers = {name: np.zeros((0, 0), dtype=dt) for name, dt in self.LAYERS.items()}
 
+    def decay(self, factor: float) -> None:
+        """Fade all evidence toward unknown by `factor` in (0, 1] (stale cells fade; cells
+        seen again are renewed by the new evidence). Only the log-odds models can."""
+        raise ValueError(f"{type(self).__name__} has no evidence that can decay")
+
     # --- geometry -----------------------------------------------------------------------
     @property
     def resolution(self) -> float:
@@ -434,6 +439,11 @@ class OccupancyGrid(GridExtent):
         if not 0.0 < thr < 1.0:
             raise ValueError(f"threshold must be in (0, 1), got {thr}")
         return self.log_odds > np.log(thr / (1.0 - thr))
+
+    def decay(self, factor: float) -> None:
+        if not 0.0 < factor <= 1.0:
+            raise ValueError(f"decay factor must be in (0, 1], got {factor}")
+        self._layers["log_odds"] *= np.float32(factor)
 
     def _update(self, layers: dict[str, np.ndarray], frame: _Frame) -> None:
         p = self.config.log_odds

@@ -29,6 +29,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.messages import CameraIntrinsics, DepthFrame, LaserScan
 from mapping.depth_points import DepthConfig, project_depth_frame
 from mapping.grid import GridConfig, GridExtent, make_grid
+from mapping.hygiene import HygieneConfig
 from mapping.observation import PlanarObservation, ViewWedge, as_pose
 from mapping.scan_points import ScanConfig, scan_to_observation
 
@@ -45,6 +46,8 @@ class MapperConfig:
     point_quantum_m: lattice the walker-frame points are snapped to before integrating and
         keeping; None: resolution/4 (1.25 cm at 5 cm cells); 0: no snapping.
     max_keyframes: most keyframes kept for `rebuild`; None: all.
+    hygiene: periodic reset, decay and gating of what is mapped (`mapping.hygiene`,
+        applied by the pipeline); off by default.
     """
 
     grid: GridConfig = field(default_factory=GridConfig)
@@ -54,6 +57,7 @@ class MapperConfig:
     view_half_fov_rad: float | None = None
     point_quantum_m: float | None = None
     max_keyframes: int | None = None
+    hygiene: HygieneConfig = field(default_factory=HygieneConfig)
 
 
 @dataclass(frozen=True, eq=False)

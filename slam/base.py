@@ -25,6 +25,7 @@ __all__ = [
     "LocalizerConfig",
     "MapScorer",
     "PoseEstimate",
+    "SlipEstimator",
     "UnknownNameError",
     "available",
     "create",
@@ -91,6 +92,16 @@ class LandmarkMapper(Protocol):
 
     def landmarks(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """{landmark id: (mean (x, y), 2×2 covariance)} in the map frame."""
+        ...
+
+
+@runtime_checkable
+class SlipEstimator(Protocol):
+    """A localizer that can estimate each rear wheel's slip coefficient (slam.slip:
+    ekf-slam, gtsam, fastslam with `slip.estimate`)."""
+
+    def slip_estimate(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """((k_left, k_right), their 2×2 covariance), or None when not estimating."""
         ...
 
 

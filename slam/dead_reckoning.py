@@ -10,6 +10,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.messages import Message
 from hardware.registry import Spec
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
+from slam.gyro import GyroFusion
 from slam.motion import MotionNoise, OdometryModel, propagate
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
@@ -19,10 +20,14 @@ class DeadReckoningConfig(LocalizerConfig):
     """Dead-reckoning settings.
 
     initial_pose: (x, y, θ) at the first message (defines the map frame).
-    noise: odometry noise for the covariance (see slam.motion.MotionNoise).
+    noise: odometry noise for the covariance (see slam.motion.MotionNoise); with the gyro
+    (noise.gyro.enabled) its bias updates also correct the heading integrated so far
+    (noise.gyro.correct_heading: nothing else corrects it here).
     """
 
-    noise: MotionNoise = field(default_factory=MotionNoise)
+    noise: MotionNoise = field(
+        default_factory=lambda: MotionNoise(gyro=GyroFusion(correct_heading=True))
+    )
 
 
 class DeadReckoning(Localizer):
@@ -47,6 +52,9 @@ class DeadReckoning(Localizer):
 
     def _record(self, t: float) -> None:
         self.track.record(t, self._pose)
+
+    def diagnostics(self) -> dict:
+        return self.odometry.diagnostics()
 
     def estimate(self) -> PoseEstimate:
         return PoseEstimate(self.track.last_t, np.array(self._pose), np.array(self._cov))

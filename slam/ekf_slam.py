@@ -5,6 +5,13 @@ State [x, y, θ, u_1, v_1, …]; a landmark joins the state at its first observa
 increments predict; range-bearing observations (tags seen by the camera, or range-bearing
 datasets) update, one landmark at a time, after a Mahalanobis gate rejects outliers.
 Observations without an ID (< 0) are not used (this filter needs known association).
+Absolute observations (`absolute`, slam.absolute: a compass heading, a position fix),
+when switched on, are Kalman updates of the pose block (heading innovation wrapped),
+behind a Mahalanobis gate at the chi-squared quantile `absolute.gate_prob`.
+
+With `slip.estimate` the state also holds each rear wheel's slip coefficient,
+[x, y, θ, k_L, k_R, u_1, v_1, …] (slam.slip): odometry moves the pose by the
+slip-corrected arc and k by its random walk, and the tag updates correct both.
 """
 
 from __future__ import annotations
@@ -18,6 +25,12 @@ from hardware.choices import Choice, coerce
 from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
+from slam.absolute import (
+    AbsoluteConfig,
+    AbsoluteObservation,
+    absolute_observation,
+    fused_count,
+)
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
@@ -30,8 +43,9 @@ from slam.measurement import (
     range_bearing,
     range_bearing_jacobians,
 )
-from slam.motion import Cov3, MotionNoise, OdometryModel, propagate
+from slam.motion import Cov3, Increment, MotionNoise, OdometryModel, propagate, split_increment
 from slam.rts import arc_steps, rts_smooth
+from slam.slip import SlipEstimation, predict_with_slip, slip_diagnostics
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 
@@ -55,6 +69,14 @@ class EkfSlamConfig(LocalizerConfig):
     odometry (slam.rts, pose-only), so a loop closure's correction also moves the path
     that led to it and the pipeline rebuilds the map along it (`revises_past`);
     "none": the filtered poses, each fixed when it was recorded.
+    absolute: compass / position-fix fusion (slam.absolute.AbsoluteConfig; off by
+    default), gated at absolute.gate_prob.
+    slip: per-wheel slip estimation (slam.slip.SlipEstimation; `slip.estimate=true`).
+    align_observations: a landmark observation is held until the next odometry message,
+    whose increment is split at the observation's time (slam.motion.split_increment),
+    so that it updates the pose of its own time; otherwise the pose of the last
+    odometry message (a tag frame comes 10 ms after a 50 Hz encoder message: in a turn
+    the walker has turned on by then, which biases a slip estimate low).
     """
 
     noise: MotionNoise = field(default_factory=MotionNoise)
@@ -63,6 +85,9 @@ class EkfSlamConfig(LocalizerConfig):
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     gate_chi2: float = 13.8
     smoother: EkfSmoother = EkfSmoother.RTS
+    absolute: AbsoluteConfig = field(default_factory=AbsoluteConfig)
+    slip: SlipEstimation = field(default_factory=SlipEstimation)
+    align_observations: bool = False
 
     def __post_init__(self) -> None:
         coerce(self, smoother=EkfSmoother)
@@ -75,14 +100,25 @@ class EkfSlam(Localizer):
         self.odometry = OdometryModel(calibration, config.noise)
         self._x = np.array(config.initial_pose, dtype=float)
         self._P = np.zeros((3, 3))
+        self._slip = config.slip.estimate
+        if self._slip:  # k after the pose; the landmarks then start at 5 (_sync)
+            self._x = np.concatenate([self._x, config.slip.k_prior])
+            self._P = np.zeros((5, 5))
+            self._P[3:, 3:] = config.slip.prior_cov()
+        self._k = self._x[3:5].copy()
+        self._block = self._P[:5, :5].copy()  # (pose, k) covariance between updates
+        self._bk = np.zeros((3, 2))  # ∂pose/∂k of the steps since the last update
         # Between updates, odometry moves only the pose and its 3×3 covariance (on floats,
         # slam.motion.propagate); the pose–landmark cross-covariance rows are moved once,
         # by the sum of the steps' (a, b), when the full state is next needed (_sync).
-        self._pose = tuple(float(v) for v in self._x)
-        self._cov3 = tuple(tuple(r) for r in self._P.tolist())
+        self._pose = tuple(float(v) for v in self._x[:3])
+        self._cov3 = tuple(tuple(r) for r in self._P[:3, :3].tolist())
         self._cross = [0.0, 0.0]
         self.index: dict[int, int] = {}  # landmark id → state offset
         self.counts = {"updates": 0, "new_landmarks": 0, "gated": 0, "without_id": 0}
+        if config.absolute.enabled:
+            self.counts.update(compass_updates=0, position_updates=0, absolute_gated=0)
+        self._gates = {dof: config.absolute.gate(dof) for dof in (1, 2)}
         self.track = TrajectoryRecorder()
         self.revises_past = config.smoother == "rts"
         # per recorded step, for the smoother: the pose covariance (after the updates of
@@ -91,61 +127,139 @@ class EkfSlam(Localizer):
         self._f_inc: list[tuple[float, float, float, float, float]] = []
         self._inc = [0.0, 0.0, 0.0, 0.0, 0.0]
         self._path_cache: tuple[tuple[int, int], Trajectory] | None = None
+        self._held: list[LandmarkObservation] = []  # align_observations: not yet used
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
         inc = self.odometry.increment(msg)
         if inc is not None:
-            self._predict(inc.ds, inc.dtheta, inc.cov)
+            for obs in self._held:  # observations made since the last odometry message
+                part, inc = split_increment(inc, obs.t)
+                self._move(part)
+                self._observe(obs, between=True)
+            self._held = []
+            self._move(inc)
             self._record(msg.t)
         elif (obs := landmark_observation(msg, self.calibration)) is not None:
-            self._observe(obs)
+            if self.config.align_observations and self.track and obs.t > self.track.last_t:
+                self._held.append(obs)  # placed when the next odometry message spans it
+            else:
+                self._observe(obs)
+        elif (fix := absolute_observation(msg, self.config.absolute)) is not None:
+            self._absolute(fix)
         if not self.track and self.odometry.has_odometry:
             self._record(msg.t)
+
+    def _move(self, inc: Increment) -> None:
+        if self._slip:
+            self._predict_slip(inc)
+        else:
+            self._predict(inc.ds, inc.dtheta, inc.cov)
 
     def _predict(self, ds: float, dth: float, q: np.ndarray) -> None:
         self._pose, self._cov3, (a, b) = propagate(self._pose, self._cov3, ds, dth, q)
         self._cross[0] += a
         self._cross[1] += b
-        if self.revises_past:  # one increment per recorded step (odometry is recorded)
-            self._inc = [ds, dth, float(q[0, 0]), float(q[0, 1]), float(q[1, 1])]
+        if self.revises_past:
+            self._step_increment(ds, dth, q)
+
+    def _step_increment(self, ds: float, dth: float, q: np.ndarray) -> None:
+        """Add to the odometry of the step being recorded (for the smoother): one
+        increment per step, or the parts of one split around an observation."""
+        add = (ds, dth, float(q[0, 0]), float(q[0, 1]), float(q[1, 1]))
+        self._inc = [a + b for a, b in zip(self._inc, add, strict=True)]
+
+    def _predict_slip(self, inc) -> None:
+        """The prediction with slip estimation: pose and k together (slam.slip), and the
+        deferred cross-covariance of the pose with the landmarks, now
+        P_pose,l ← F P_pose,l + F_k P_k,l (k's rows with the landmarks do not move)."""
+        c = self.config
+        step = predict_with_slip(
+            np.array(self._pose),
+            self._block,
+            inc,
+            self._k,
+            self.calibration.track_m,
+            c.slip.random_walk_per_s**2,
+        )
+        self._pose = tuple(step.pose.tolist())
+        self._block = step.cov
+        self._cov3 = tuple(tuple(r) for r in step.cov[:3, :3].tolist())
+        self._bk = step.f @ self._bk + step.f_k
+        self._cross[0] += float(step.f[0, 2])
+        self._cross[1] += float(step.f[1, 2])
+        if self.revises_past:
+            self._step_increment(step.ds, step.dtheta, step.q)
 
     def _sync(self) -> None:
         """Bring the full state up to date with the predictions since the last update."""
         self._x[:3] = self._pose
         p = self._P
-        p[:3, :3] = self._cov3
+        n = 5 if self._slip else 3  # where the landmarks start
+        if self._slip:
+            p[:5, :5] = self._block
+        else:
+            p[:3, :3] = self._cov3
         a, b = self._cross
-        if len(self._x) > 3 and (a or b):
-            p[0, 3:] += a * p[2, 3:]
-            p[1, 3:] += b * p[2, 3:]
-            p[3:, :2] = p[:2, 3:].T
+        if len(self._x) > n and (a or b or self._slip):
+            p[0, n:] += a * p[2, n:]
+            p[1, n:] += b * p[2, n:]
+            if self._slip:
+                p[:3, n:] += self._bk @ p[3:5, n:]
+                p[n:, :3] = p[:3, n:].T
+            else:
+                p[3:, :2] = p[:2, 3:].T
         self._cross = [0.0, 0.0]
+        self._bk = np.zeros((3, 2))
 
     def _unsync(self) -> None:
         """Take the pose and its covariance back from the full state after an update."""
         self._pose = tuple(self._x[:3].tolist())
         self._cov3 = tuple(tuple(r) for r in self._P[:3, :3].tolist())
+        if self._slip:
+            self._k = self._x[3:5].copy()
+            self._block = self._P[:5, :5].copy()
 
     def _noise(self, z: np.ndarray) -> np.ndarray:
         c = self.config
         sr = c.range_sigma_m + c.range_sigma_frac * z[0]
         return np.diag([sr * sr, c.bearing_sigma_rad**2])
 
-    def _observe(self, obs: LandmarkObservation) -> None:
+    def _observe(self, obs: LandmarkObservation, between: bool = False) -> None:
+        """Update with one message's observations; between: made after the last
+        recorded step (align_observations), which then keeps its pose and covariance."""
         self._sync()
         for lid, z in zip(obs.ids, obs.z, strict=True):
             lid = int(lid)
             if lid < 0:
                 self.counts["without_id"] += 1
             elif lid in self.index:
-                self._update(self.index[lid], z)
+                self._update(self.index[lid], z, amend=not between)
             else:
                 self._add_landmark(lid, z)
         self._unsync()
+        self._after_observation(between)
+
+    def _after_observation(self, between: bool = False) -> None:
+        """The smoother's last step takes the corrected covariance (unless the observation
+        was made after it: align_observations); the past is revised."""
         if self.revises_past and self._f_cov:
-            self._f_cov[-1] = self._cov3
+            if not between:
+                self._f_cov[-1] = self._cov3
             self.revision += 1
+
+    def _absolute(self, obs: AbsoluteObservation) -> None:
+        """A Kalman update of the pose by a compass heading or a position fix (gated)."""
+        self._sync()
+        h = obs.jacobian
+        pht = self._P[:, :3] @ h.T
+        s = h @ pht[:3] + obs.covariance
+        if self._correct(pht, s, obs.residual(self._x[:3]), self._gates[len(obs.z)]):
+            self.counts[f"{obs.kind}_updates"] += 1
+        else:
+            self.counts["absolute_gated"] += 1
+        self._unsync()
+        self._after_observation()
 
     def _add_landmark(self, lid: int, z: np.ndarray) -> None:
         pose = self._x[:3]
@@ -162,7 +276,7 @@ class EkfSlam(Localizer):
         self.index[lid] = n
         self.counts["new_landmarks"] += 1
 
-    def _update(self, j: int, z: np.ndarray) -> None:
+    def _update(self, j: int, z: np.ndarray, amend: bool = True) -> None:
         x, p = self._x, self._P
         lm = x[j : j + 2]
         g_s, g_l = range_bearing_jacobians(x[:3], lm)
@@ -171,17 +285,29 @@ class EkfSlam(Localizer):
         s = g_s @ pht[:3] + g_l @ pht[j : j + 2] + self._noise(z)
         nu = z - range_bearing(x[:3], lm)
         nu[1] = wrap_angle(nu[1])
-        s_inv = np.linalg.inv(s)
-        if float(nu @ s_inv @ nu) > self.config.gate_chi2:
+        if self._correct(pht, s, nu, self.config.gate_chi2, amend):
+            self.counts["updates"] += 1
+        else:
             self.counts["gated"] += 1
-            return
+
+    def _correct(
+        self, pht: np.ndarray, s: np.ndarray, nu: np.ndarray, gate: float, amend: bool = True
+    ) -> bool:
+        """The Kalman correction x += K ν, P −= K S Kᵀ with K = P Hᵀ S⁻¹ (pht = P Hᵀ, s =
+        S), unless ν's squared Mahalanobis distance exceeds `gate` (then False); amend:
+        the trajectory's latest pose takes the corrected pose (not for an observation
+        placed inside an odometry step, whose pose is not the latest)."""
+        s_inv = np.linalg.inv(s)
+        if float(nu @ s_inv @ nu) > gate:
+            return False
         k = pht @ s_inv
-        self._x = x + k @ nu
+        self._x = self._x + k @ nu
         self._x[2] = wrap_angle(self._x[2])
-        self._P = p - k @ s @ k.T
+        self._P = self._P - k @ s @ k.T
         self._P = 0.5 * (self._P + self._P.T)
-        self.counts["updates"] += 1
-        self.track.amend(tuple(self._x[:3].tolist()))
+        if amend:
+            self.track.amend(tuple(self._x[:3].tolist()))
+        return True
 
     def _record(self, t: float) -> None:
         n = len(self.track)
@@ -197,12 +323,20 @@ class EkfSlam(Localizer):
             self._f_inc[-1] = (prev[0] + self._inc[0], prev[1] + self._inc[1], *self._inc[2:])
         self._inc = [0.0, 0.0, 0.0, 0.0, 0.0]
 
+    def _place_held(self) -> None:
+        """Observations still waiting for the odometry after them (align_observations),
+        used at the latest pose: an output is asked for."""
+        held, self._held = self._held, []
+        for obs in held:
+            self._observe(obs)
+
     # -- outputs ----------------------------------------------------------------------
     def estimate(self) -> PoseEstimate:
         return PoseEstimate(self.track.last_t, np.array(self._pose), np.array(self._cov3))
 
     def trajectory(self) -> Trajectory:
         """The RTS-smoothed pose track (config.smoother) or the filtered poses."""
+        self._place_held()
         filtered = self.track.trajectory()
         if not self.revises_past or len(filtered) < 2:
             return filtered
@@ -216,12 +350,22 @@ class EkfSlam(Localizer):
         return self._path_cache[1]
 
     def state(self) -> tuple[np.ndarray, np.ndarray]:
-        """(mean, covariance) of the whole state [x, y, θ, u_1, v_1, …] (copies)."""
+        """(mean, covariance) of the whole state [x, y, θ, u_1, v_1, …] (copies); with
+        slip estimation [x, y, θ, k_L, k_R, u_1, v_1, …]."""
+        self._place_held()
         self._sync()
         return self._x.copy(), self._P.copy()
 
+    def slip_estimate(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(k_left, k_right) and their 2×2 covariance; None without slip estimation."""
+        if not self._slip:
+            return None
+        self._place_held()
+        return self._k.copy(), self._block[3:, 3:].copy()
+
     def landmarks(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Landmark id → (mean (2,), covariance 2×2)."""
+        self._place_held()
         self._sync()
         return {
             lid: (self._x[j : j + 2].copy(), self._P[j : j + 2, j : j + 2].copy())
@@ -229,9 +373,14 @@ class EkfSlam(Localizer):
         }
 
     def diagnostics(self) -> dict:
-        notes = dict(self.counts)
-        if self.counts["updates"] == 0 and self.counts["new_landmarks"] == 0:
+        self._place_held()
+        notes: dict = {**self.counts, **self.odometry.diagnostics()}
+        c = self.counts
+        absolute = fused_count(c)
+        if c["updates"] == 0 and c["new_landmarks"] == 0 and absolute == 0:
             notes["note"] = "no landmark observations with an ID: odometry only"
+        if (slip := self.slip_estimate()) is not None:
+            notes.update(slip_diagnostics(*slip))
         return notes
 
 

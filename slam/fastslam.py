@@ -88,8 +88,16 @@ from slam.measurement import (
     range_bearing,
     range_bearing_jacobians,
 )
-from slam.motion import Increment, MotionNoise, OdometryModel, apply_increment
+from slam.motion import (
+    Increment,
+    MotionNoise,
+    OdometryModel,
+    apply_increment,
+    sinc_and_derivative,
+    split_increment,
+)
 from slam.particle_paths import ParticlePaths
+from slam.slip import SlipEstimation, increment_with_slip, slip_diagnostics
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 __all__ = [
@@ -146,6 +154,14 @@ class FastSlamConfig(LocalizerConfig):
     path_snapshot_s; the past then changes with every update (`revises_past`), and the
     pipeline rebuilds the map along it. False: the filtered mean at each odometry message,
     which jumps whenever the weights shift.
+    slip: per-wheel slip estimation (slam.slip.SlipEstimation; `slip.estimate=true`):
+    each particle carries its own (k_left, k_right), drawn from the prior and moved by
+    the random walk with every odometry message; it moves the particle by its slip-
+    corrected arc, so the weights select the k that the tags agree with; the estimate is
+    the particles' weighted mean.
+    align_observations: the observations held for the next odometry message (see above)
+    are used part way through its increment, at their own time
+    (slam.motion.split_increment), not at the pose of the message before them.
     """
 
     n_particles: int = 100
@@ -163,6 +179,8 @@ class FastSlamConfig(LocalizerConfig):
     smoothed_trajectory: bool = True
     path_snapshot_s: float = 0.1
     weight_gain: float = 20.0
+    slip: SlipEstimation = field(default_factory=SlipEstimation)
+    align_observations: bool = False
 
     def __post_init__(self) -> None:
         if self.version not in (1, 2):
@@ -240,14 +258,22 @@ def _sinc_half(dtheta: float) -> tuple[float, float]:
 
 
 def propagate_linearised(
-    poses: np.ndarray, pending: np.ndarray, ds: float, dtheta: float, q: np.ndarray
+    poses: np.ndarray,
+    pending: np.ndarray,
+    ds: float | np.ndarray,
+    dtheta: float | np.ndarray,
+    q: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Move poses (N, 3) along the noise-free arc (ds, dθ) and their motion covariances
-    (N, 3, 3) by P ← F P Fᵀ + G Q Gᵀ, with F, G of `slam.motion.increment_jacobians` at
-    each pose's heading. Written out on the entries (this runs for every odometry
-    message): F is the identity but for F[0, 2] = −dy and F[1, 2] = dx."""
+    """Move poses (N, 3) along the noise-free arc (ds, dθ) (one for all, or (N,) each) and
+    their motion covariances (N, 3, 3) by P ← F P Fᵀ + G Q Gᵀ, with F, G of
+    `slam.motion.increment_jacobians` at each pose's heading. Written out on the entries
+    (this runs for every odometry message): F is the identity but for F[0, 2] = −dy and
+    F[1, 2] = dx."""
     n = len(poses)
-    s, s_prime = _sinc_half(dtheta)
+    if np.ndim(dtheta) == 0:
+        s, s_prime = _sinc_half(dtheta)
+    else:  # one increment per particle (slip estimation)
+        s, s_prime = sinc_and_derivative(0.5 * np.asarray(dtheta))
     chord, dchord = ds * s, 0.5 * ds * s_prime
     h = poses[:, 2] + 0.5 * dtheta
     c, sn = np.cos(h), np.sin(h)
@@ -429,11 +455,18 @@ class FastSlam(Localizer):
         self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
         self._held: list[tuple[int, np.ndarray]] = []  # observations of one time, not yet used
         self._held_t = math.nan
+        slip = config.slip
+        self.k: np.ndarray | None = None  # (N, 2) each particle's slip coefficients
+        if slip.estimate:
+            self.k = np.asarray(slip.k_prior) + slip.k_sigma * self.rng.standard_normal((n, 2))
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
         inc = self.odometry.increment(msg)
         if inc is not None:
+            if self.config.align_observations and self._held:
+                part, inc = split_increment(inc, self._held_t)
+                self._move(part)
             self._flush()
             self._move(inc)
             self._record(msg.t)
@@ -452,13 +485,16 @@ class FastSlam(Localizer):
         q = inc.cov
         if inc.ds == 0.0 and inc.dtheta == 0.0 and not np.any(q):
             return  # standing still, exactly
+        ds, dth = inc.ds, inc.dtheta
+        if self.k is not None:  # each particle's own slip, then its random walk
+            ds, dth, _ = increment_with_slip(inc, self.k, self.calibration.track_m)
+            walk = self.config.slip.random_walk_per_s * math.sqrt(max(inc.dt, 0.0))
+            self.k = self.k + walk * self.rng.standard_normal(self.k.shape)
         if self.config.version == 1:
             e = self.rng.standard_normal((self.n, 2)) @ _cholesky2(q).T
-            self.poses = apply_increment(self.poses, inc.ds + e[:, 0], inc.dtheta + e[:, 1])
+            self.poses = apply_increment(self.poses, ds + e[:, 0], dth + e[:, 1])
             return
-        self.poses, self.pending = propagate_linearised(
-            self.poses, self.pending, inc.ds, inc.dtheta, q
-        )
+        self.poses, self.pending = propagate_linearised(self.poses, self.pending, ds, dth, q)
 
     def _noise(self, z: np.ndarray) -> np.ndarray:
         c = self.config
@@ -639,6 +675,8 @@ class FastSlam(Localizer):
         self.means = self.means[idx]
         self.covs = self.covs[idx]
         self.seen = self.seen[idx]
+        if self.k is not None:
+            self.k = self.k[idx]
         self._w = np.full(self.n, 1.0 / self.n)
         self.log_weights = np.full(self.n, -math.log(self.n))
         self.counts["resamples"] += 1
@@ -689,9 +727,21 @@ class FastSlam(Localizer):
             if self.seen[best, col]
         }
 
+    def slip_estimate(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The particles' weighted mean (k_left, k_right) and weighted covariance; None
+        without slip estimation."""
+        if self.k is None:
+            return None
+        self._flush()
+        mean = self._w @ self.k
+        d = self.k - mean
+        return mean, (d * self._w[:, None]).T @ d
+
     def diagnostics(self) -> dict:
         self._flush()
-        notes: dict = dict(self.counts)
+        notes: dict = {**self.counts, **self.odometry.diagnostics()}
+        if (slip := self.slip_estimate()) is not None:
+            notes.update(slip_diagnostics(*slip))
         notes["version"] = self.config.version
         notes["particles"] = self.n
         notes["landmarks"] = len(self.index)

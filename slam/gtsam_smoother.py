@@ -14,6 +14,15 @@ tags' yaw flips); observations without a yaw (range-bearing datasets) are skippe
 counted. Every update revises the past: `trajectory()` is the smoothed estimate,
 every odometry message placed relative to its (smoothed) keyframe.
 
+Absolute observations (`absolute`, slam.absolute; off by default) attach to the latest
+keyframe as landmarks do (a new keyframe starts at them when they come
+`obs_keyframe_dt_s` or more after it and the walker has moved): a compass heading is a
+`PoseRotationPrior2D` on the keyframe (the heading measured, less the turn since the
+keyframe), a position fix a GPS-like factor (`position_factor`, a CustomFactor: the
+map-frame position of the walker's point at the offset it has moved since the keyframe,
+in the keyframe's frame; with no offset it is `PoseTranslationPrior2D`); both Huber-
+robust at `absolute.robust_k` σ when that is > 0.
+
 Scan matching (`scan_matching=True`, off by default). Laser scans (`LaserScan`, with
 the laser's mount `laser_offset` on the walker) and depth frames (`DepthFrame`: the
 obstacle band flattened to the floor, `mapping.depth_points`) become 2-D point sets in
@@ -64,6 +73,12 @@ that variance, averages to the variance multiplier (σ multipliers clipped to
 `odometry_adaptive_range`, reported as `odometry_sigma_scale`); from the
 `odometry_adaptive_min_matches`-th match on it applies to new odometry factors, and the
 factors added before are replaced once with the scaled ones.
+
+Slip estimation (`slip.estimate`, slam.slip): each keyframe also has the wheels' slip
+coefficients k = (k_left, k_right) as a Point2 S(i), with a prior on S(0) and a random
+walk between successive ones; the odometry factor from keyframe i to i+1 is then a
+function of S(i) (slam.gtsam_slip), so the tags that pin the poses also estimate k, and
+the odometry is integrated with the latest estimate of k between them.
 """
 
 from __future__ import annotations
@@ -74,14 +89,23 @@ from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import L, T, X
+from gtsam.symbol_shorthand import L, S, T, X
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
 from hardware.geometry import compose, wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
+from slam.absolute import (
+    AbsoluteConfig,
+    AbsoluteObservation,
+    absolute_observation,
+    fused_count,
+    offset_position,
+    offset_position_jacobian,
+)
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
+from slam.gtsam_slip import slip_odometry_factor, slip_walk_factor
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -90,7 +114,14 @@ from slam.measurement import (
     ObservationModel,
     landmark_observation,
 )
-from slam.motion import MotionNoise, OdometryModel, apply_increment, increment_jacobians
+from slam.motion import (
+    Increment,
+    MotionNoise,
+    OdometryModel,
+    apply_increment,
+    increment_jacobians,
+    split_increment,
+)
 from slam.scan_matching import (
     MatchResult,
     Reference,
@@ -102,6 +133,7 @@ from slam.scan_matching import (
     place,
     relative_guess,
 )
+from slam.slip import SlipEstimation, increment_with_slip, slip_diagnostics
 from slam.trajectory import Trajectory
 
 
@@ -223,6 +255,15 @@ class GtsamConfig(LocalizerConfig):
     Intel's robot_frontlaser_offset is 0); scan (SequentialScans): which scans are kept
     and how each is matched to the ones before it; loop (LoopClosures): loop closures;
     both accept a match through a MatchGate.
+    absolute: compass / position-fix factors (slam.absolute.AbsoluteConfig; off by
+    default; module docstring).
+    slip: per-wheel slip estimation (slam.slip.SlipEstimation; `slip.estimate=true`).
+    align_observations: a landmark observation is held until the next odometry message
+    and placed at the pose of its own time (slam.motion.split_increment); otherwise at
+    the last odometry message's pose. A tag frame falls between encoder messages (10 ms
+    after one at 50 Hz): in a turn the walker has turned on by then, and that heading
+    error, correlated with braking, biases a slip estimate low (by ~15 % on simulated
+    trials).
     """
 
     prior_sigma: tuple[float, float, float] = (1e-3, 1e-3, 1e-4)
@@ -254,6 +295,9 @@ class GtsamConfig(LocalizerConfig):
     odometry_adaptive_min_matches: int = 10
     odometry_adaptive_range: tuple[float, float] = (0.1, 100.0)
     loop: LoopClosures = field(default_factory=lambda: LoopClosures())
+    absolute: AbsoluteConfig = field(default_factory=AbsoluteConfig)
+    slip: SlipEstimation = field(default_factory=SlipEstimation)
+    align_observations: bool = False
 
     def __post_init__(self) -> None:
         coerce(
@@ -284,6 +328,26 @@ def _robust(kind: str, k: float, base: gtsam.noiseModel.Base) -> gtsam.noiseMode
         else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
     )
     return gtsam.noiseModel.Robust.Create(est, base)
+
+
+def position_factor(
+    key: int, z: np.ndarray, offset: np.ndarray, noise: gtsam.noiseModel.Base
+) -> gtsam.CustomFactor:
+    """A GPS-like factor on Pose2 `key`: the map-frame position of the point `offset`
+    (dx, dy) in the pose's frame is measured as z; error = position − z, with the
+    Jacobian of slam.absolute.offset_position_jacobian (checked numerically in the
+    tests). With offset 0 it is gtsam.PoseTranslationPrior2D."""
+    z = np.array(z, dtype=float)
+    offset = np.array(offset, dtype=float)
+
+    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
+        p = values.atPose2(this.keys()[0])
+        pose = np.array([p.x(), p.y(), p.theta()])
+        if jacobians is not None:
+            jacobians[0] = offset_position_jacobian(pose, offset)
+        return offset_position(pose, offset) - z
+
+    return gtsam.CustomFactor(noise, [key], error)
 
 
 def _body_covariance(cov: np.ndarray, theta: float) -> np.ndarray:
@@ -321,6 +385,8 @@ class GtsamSmoother(Localizer):
         self._marginal: np.ndarray | None = None
         self._cache: tuple[int, Trajectory] | None = None
         self.counts = {"keyframes": 0, "landmark_factors": 0, "without_id": 0, "updates": 0}
+        if config.absolute.enabled:
+            self.counts.update(compass_factors=0, position_factors=0)
         self._tags = config.observation == "tag-pose"
         if self._tags:
             self.counts["without_yaw"] = 0
@@ -333,8 +399,14 @@ class GtsamSmoother(Localizer):
         self._odo_scale = np.ones(3)  # adaptive σ multipliers of the odometry (x, y, θ)
         self._odo_z: list[np.ndarray] = []  # normalised squared odometry errors
         self._adapted = not (config.scan_matching and config.odometry_adaptive)
-        self._early_odometry: list[list] = []  # [keyframe, delta, model cov, factor index]
+        # [keyframe, delta, model cov, slip (or None), factor index]
+        self._early_odometry: list[list] = []
         self._pending: list[tuple[int, list]] = []  # (position in self._graph, record)
+        # slip estimation: the latest estimate of k, and ∂delta/∂k since the keyframe
+        self._slip = config.slip.estimate
+        self._k = np.array(config.slip.k_prior, dtype=float)
+        self._delta_jk = np.zeros((3, 2))
+        self._held: list[LandmarkObservation] = []  # align_observations: not yet placed
         if config.scan_matching:
             self.counts.update(
                 scans_kept=0,
@@ -351,16 +423,41 @@ class GtsamSmoother(Localizer):
     def process(self, msg: Message) -> None:
         inc = self.odometry.increment(msg)
         if inc is not None:
-            self._integrate(inc.ds, inc.dtheta, inc.cov)
+            for obs in self._held:  # observations made since the last odometry message
+                part, inc = split_increment(inc, obs.t)
+                self._move(part)
+                self._observe(obs)
+            self._held = []
+            self._move(inc)
             self._note(msg.t)
             if self._keyframe_due(msg.t):
                 self._new_keyframe(msg.t)
         elif (obs := landmark_observation(msg, self.calibration)) is not None:
-            self._observe(obs)
+            if self.config.align_observations and self._t is not None and obs.t > self._t:
+                self._held.append(obs)  # placed when the next odometry message spans it
+            else:
+                self._observe(obs)
+        elif (fix := absolute_observation(msg, self.config.absolute)) is not None:
+            self._absolute(fix)
         elif self.config.scan_matching and isinstance(msg, LaserScan | DepthFrame):
             self._scan(msg)
         if self._kf < 0 and self.odometry.has_odometry:
             self._start(msg.t)
+
+    def _move(self, inc: Increment) -> None:
+        """Integrate an odometry increment (slip-corrected with the latest k)."""
+        if self._slip:
+            ds, dth, jk = increment_with_slip(inc, self._k, self.calibration.track_m)
+            self._integrate(float(ds), float(dth), inc.cov, jk)
+        else:
+            self._integrate(inc.ds, inc.dtheta, inc.cov)
+
+    def _place_held(self) -> None:
+        """Observations still waiting for the odometry after them (align_observations),
+        placed at the latest pose: an output is asked for."""
+        for obs in self._held:
+            self._observe(obs)
+        self._held = []
 
     def _start(self, t: float) -> None:
         c = self.config
@@ -371,6 +468,10 @@ class GtsamSmoother(Localizer):
             )
         )
         self._values.insert(X(0), pose)
+        if self._slip:
+            sigma = gtsam.noiseModel.Isotropic.Sigma(2, c.slip.k_sigma)
+            self._graph.add(gtsam.PriorFactorPoint2(S(0), self._k, sigma))
+            self._values.insert(S(0), self._k)
         self._kf, self._kf_t = 0, [t]
         self._flush()
         self._note(t)
@@ -383,13 +484,18 @@ class GtsamSmoother(Localizer):
         self._t = t
         self._records.append((t, self._kf, self._delta.copy()))
 
-    def _integrate(self, ds: float, dth: float, q: np.ndarray) -> None:
+    def _integrate(
+        self, ds: float, dth: float, q: np.ndarray, jk: np.ndarray | None = None
+    ) -> None:
+        """Add an increment to the motion since the keyframe; jk: ∂(ds, dθ)/∂k (slip)."""
         c = self.config
         if self._walk:
             kxy, kxy_turn, kth, kturn = c.odometry_walk
             vxy = kxy * abs(ds) + kxy_turn * abs(dth)
             added = np.diag([vxy, vxy, kth * abs(ds) + kturn * abs(dth)])
         f, g = increment_jacobians(self._delta[2], ds, dth)
+        if jk is not None:
+            self._delta_jk = f @ self._delta_jk + g @ jk
         self._delta = apply_increment(self._delta, ds, dth)
         if not self._walk:
             added = g @ q @ g.T
@@ -416,22 +522,29 @@ class GtsamSmoother(Localizer):
         s = self._odo_scale
         return (model_cov + floor) * np.outer(s, s)
 
-    def _odometry_factor(self, a: int, delta: np.ndarray, model_cov: np.ndarray):
-        return gtsam.BetweenFactorPose2(
-            X(a),
-            X(a + 1),
-            gtsam.Pose2(*delta),
-            gtsam.noiseModel.Gaussian.Covariance(self._odometry_cov(model_cov)),
-        )
+    def _odometry_factor(self, a: int, delta: np.ndarray, model_cov: np.ndarray, slip=None):
+        """Keyframe a → a + 1; slip: (∂delta/∂k, the k it was integrated with), making
+        it a function of S(a) (slam.gtsam_slip), or None."""
+        noise = gtsam.noiseModel.Gaussian.Covariance(self._odometry_cov(model_cov))
+        if slip is not None:
+            return slip_odometry_factor(X(a), X(a + 1), S(a), delta, *slip, noise)
+        return gtsam.BetweenFactorPose2(X(a), X(a + 1), gtsam.Pose2(*delta), noise)
 
     def _new_keyframe(self, t: float) -> None:
         k = self._kf + 1
+        slip = (self._delta_jk, self._k.copy()) if self._slip else None
         if self.config.scan_matching and not self._adapted:
             # kept until the odometry noise is adapted, then replaced (see _adapt_odometry)
-            self._early_odometry.append([self._kf, self._delta.copy(), self._delta_cov.copy()])
+            record = [self._kf, self._delta.copy(), self._delta_cov.copy(), slip]
+            self._early_odometry.append(record)
             self._pending.append((self._graph.size(), self._early_odometry[-1]))
-        self._graph.add(self._odometry_factor(self._kf, self._delta, self._delta_cov))
+        self._graph.add(self._odometry_factor(self._kf, self._delta, self._delta_cov, slip))
         self._values.insert(X(k), gtsam.Pose2(*compose(self._kf_pose, self._delta)))
+        if self._slip:
+            walk = self.config.slip.random_walk_per_s * math.sqrt(max(t - self._kf_t[-1], 0.0))
+            self._graph.add(slip_walk_factor(S(self._kf), S(k), max(walk, 1e-6)))
+            self._values.insert(S(k), self._k)
+            self._delta_jk = np.zeros((3, 2))
         self._kf = k
         self._kf_t.append(t)
         self._delta = np.zeros(3)
@@ -440,11 +553,33 @@ class GtsamSmoother(Localizer):
         self._flush()
         self._note(t)
 
+    def _attach(self, t: float) -> None:
+        """An observation at t attaches to the latest keyframe, or starts a new one at t
+        when it comes obs_keyframe_dt_s or more after it and the walker has moved."""
+        if t - self._kf_t[-1] >= self.config.obs_keyframe_dt_s and np.any(self._delta != 0):
+            self._new_keyframe(t)
+
+    def _absolute(self, obs: AbsoluteObservation) -> None:
+        """A compass heading or a position fix as a factor on its keyframe (module
+        docstring)."""
+        if self._kf < 0:
+            return
+        self._attach(obs.t)
+        a = self.config.absolute
+        base = gtsam.noiseModel.Isotropic.Sigma(len(obs.z), obs.sigma)
+        noise = _robust("huber" if a.robust_k > 0 else "none", a.robust_k, base)
+        if obs.is_heading:
+            measured = gtsam.Rot2(float(obs.z[0] - self._delta[2]))
+            self._graph.add(gtsam.PoseRotationPrior2D(X(self._kf), measured, noise))
+        else:
+            self._graph.add(position_factor(X(self._kf), obs.z, self._delta[:2], noise))
+        self.counts[f"{obs.kind}_factors"] += 1
+        self._flush()
+
     def _observe(self, obs: LandmarkObservation) -> None:
         if self._kf < 0 or len(obs) == 0:
             return
-        if obs.t - self._kf_t[-1] >= self.config.obs_keyframe_dt_s and np.any(self._delta != 0):
-            self._new_keyframe(obs.t)
+        self._attach(obs.t)
         c = self.config
         for lid, z, yaw in zip(obs.ids, obs.z, obs.yaw, strict=True):
             lid = int(lid)
@@ -598,9 +733,9 @@ class GtsamSmoother(Localizer):
                 self._adapted = True
                 self._flush()
                 graph = gtsam.NonlinearFactorGraph()
-                for a, delta, cov, _ in self._early_odometry:
-                    graph.add(self._odometry_factor(a, delta, cov))
-                remove = [rec[3] for rec in self._early_odometry]
+                for a, delta, cov, slip, _ in self._early_odometry:
+                    graph.add(self._odometry_factor(a, delta, cov, slip))
+                remove = [rec[4] for rec in self._early_odometry]
                 self.isam.update(graph, gtsam.Values(), remove)
                 self._early_odometry = []
                 self._after_update()
@@ -698,6 +833,8 @@ class GtsamSmoother(Localizer):
     def _after_update(self) -> None:
         est = self.isam.calculateEstimatePose2(X(self._kf))
         self._kf_pose = np.array([est.x(), est.y(), est.theta()])
+        if self._slip:
+            self._k = np.array(self.isam.calculateEstimatePoint2(S(self._kf)), dtype=float)
         self._marginal = None
         self.revision += 1
         self.counts["updates"] += 1
@@ -717,6 +854,7 @@ class GtsamSmoother(Localizer):
         return PoseEstimate(t, compose(self._kf_pose, self._delta), cov)
 
     def trajectory(self) -> Trajectory:
+        self._place_held()
         if self._cache is not None and self._cache[0] == self.revision:
             return self._cache[1]
         if not self._records:
@@ -733,6 +871,7 @@ class GtsamSmoother(Localizer):
         return traj
 
     def landmarks(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        self._place_held()
         values = self.isam.calculateEstimate()
         out = {}
         for lid in sorted(self._landmarks):
@@ -750,13 +889,24 @@ class GtsamSmoother(Localizer):
                 )
         return out
 
+    def slip_estimate(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(k_left, k_right) of the latest keyframe and their 2×2 marginal covariance;
+        None without slip estimation (or before the first keyframe)."""
+        if not self._slip or self._kf < 0:
+            return None
+        self._place_held()
+        return self._k.copy(), self.isam.marginalCovariance(S(self._kf))
+
     def diagnostics(self) -> dict:
-        notes = dict(self.counts)
+        self._place_held()
+        notes: dict = {**self.counts, **self.odometry.diagnostics()}
+        if (slip := self.slip_estimate()) is not None:
+            notes.update(slip_diagnostics(*slip))
         if self.config.scan_matching:
             notes["odometry_sigma_scale"] = [round(float(v), 3) for v in self._odo_scale]
             if self.counts["scan_factors"] + self.counts["loop_closures"] == 0:
                 notes["note"] = "scan matching on, but no scan was matched: odometry only"
-        elif self.counts["landmark_factors"] == 0:
+        elif self.counts["landmark_factors"] == 0 and fused_count(self.counts) == 0:
             notes["note"] = "no landmark observations with an ID: odometry only"
         return notes
 

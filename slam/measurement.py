@@ -12,6 +12,7 @@ camera mount. All functions are vectorised over leading dimensions (particles, l
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -37,6 +38,17 @@ from hardware.messages import Message, RangeBearing, TagDetections
 RANGE_SIGMA_M = 0.1
 RANGE_SIGMA_FRAC = 0.05
 BEARING_SIGMA_RAD = 0.005
+
+
+def robust_log_likelihood(
+    log_gauss: np.ndarray, log_norm: np.ndarray | float, outlier_prob: float, log_outlier: float
+) -> np.ndarray:
+    """log[(1 − ε)·N + ε·u] − log_norm: an observation's robust log-density (a Gaussian
+    N = exp(log_norm + log_gauss) mixed with a uniform outlier density u, ε =
+    outlier_prob, log_outlier = log(ε·u)) less the Gaussian's normaliser, so that as ε → 0
+    it becomes log_gauss (the particle filter's landmark and absolute likelihoods)."""
+    log_in = math.log1p(-outlier_prob) + log_norm + log_gauss
+    return np.logaddexp(log_in, log_outlier) - log_norm
 
 
 class ObservationModel(Choice):

@@ -17,18 +17,29 @@ var(dθ) = k₃|ds| + k₄|dθ| (`distance_walk`), whatever the timing. The opt-
 brake-aware variant inflates a wheel's variance with its logged brake torque τ:
 σ² += k_brake·(τ/τ_max)·|d|, and can remove an expected under-report (bias) of
 bias_per_full_brake·(τ/τ_max) of the distance (the slip the brake causes).
+
+With a yaw-rate gyro (`MotionNoise.gyro.enabled`, `slam.gyro`), an increment keeps the
+odometry's ds and its variance but takes dθ from the gyro, integrated over the same
+interval and corrected by the online bias and scale estimate; var(dθ) is then the
+gyro's and cov(ds, dθ) = 0 (independent sensors).
+An increment from encoder ticks also carries each wheel's counted distance and brake
+level, so that a localizer that estimates each wheel's slip coefficient k can recompute
+it (`slip_corrected`: true distance = encoder distance / (1 − k·level)).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
-from hardware.messages import BrakeCommand, EncoderTicks, Message, VelocityOdometry
+from hardware.messages import BrakeCommand, EncoderTicks, GyroRate, Message, VelocityOdometry
+from slam.brake_schedule import BrakeSchedule
+from slam.gyro import GyroFusion, GyroHeading
 
 
 def arc_increment(ds: float, dtheta: float, theta: float) -> tuple[float, float]:
@@ -160,6 +171,13 @@ class MotionNoise:
     distance_walk = (k₁ [m²/m], k₂ [m²/rad], k₃ [rad²/m], k₄ [rad²/rad]), by default
     σ(ds) = 5 cm per metre, σ(dθ) = 0.1 rad per radian turned and 0.077 rad per metre;
     brake_aware: inflate (and optionally de-bias) a braked wheel.
+    gyro: the turn from a yaw-rate gyro, its bias estimated online (`slam.gyro`); off by
+    default.
+    brake_delay_s: None: an increment's brake level is the last command's; a number:
+    each command takes effect this much later (loop latency and brake lag; the simulator
+    has 0.03 s + a 0.025 s time constant) and an increment's level is the time average
+    of the levels in force over it (slam.brake_schedule). The level matters only with
+    brake_aware or a slip estimate (slam.slip).
     """
 
     wheel_m: float = 0.0025
@@ -171,22 +189,93 @@ class MotionNoise:
     brake_aware: bool = False
     brake_wheel_m: float = 0.02
     bias_per_full_brake: float = 0.0
+    gyro: GyroFusion = field(default_factory=GyroFusion)
+    brake_delay_s: float | None = None
 
     def __post_init__(self) -> None:
         coerce(self, velocity_model=VelocityModel)
+        if self.brake_delay_s is not None and not 0.0 <= self.brake_delay_s < math.inf:
+            raise ValueError(f"brake_delay_s must be >= 0 (or None), got {self.brake_delay_s}")
         if len(self.distance_walk) != 4 or min(self.distance_walk) < 0:
             raise ValueError(f"distance_walk must be four values >= 0, got {self.distance_walk}")
 
 
+def uses_gyro(config: object) -> bool:
+    """Whether a localizer's config asks for the gyro: a MotionNoise among its fields with
+    gyro fusion enabled."""
+    return dataclasses.is_dataclass(config) and any(
+        isinstance(value, MotionNoise) and value.gyro.enabled
+        for value in (getattr(config, f.name) for f in dataclasses.fields(config))
+    )
+
+
 @dataclass(frozen=True)
 class Increment:
-    """Motion from t − dt to t: arc length ds, turn dθ and their 2×2 covariance."""
+    """Motion from t − dt to t: arc length ds, turn dθ and their 2×2 covariance.
+
+    From encoder ticks also what a slip estimate needs (`slip_corrected`): wheels, each
+    wheel's encoder distance [m] (left, right) as counted, before any brake-aware
+    de-biasing; brake_level, each brake's commanded level in [0, 1] over the increment."""
 
     t: float
     dt: float
     ds: float
     dtheta: float
     cov: np.ndarray
+    wheels: tuple[float, float] | None = None
+    brake_level: tuple[float, float] = (0.0, 0.0)
+
+
+def split_increment(inc: Increment, t: float) -> tuple[Increment, Increment]:
+    """The increment's motion before and after time t, in proportion to time (the walker
+    taken to move at a constant rate over an increment: the two arcs compose exactly to
+    the whole); t is clipped to the increment's span. For a landmark observation made
+    between two odometry messages, applied at the pose of its own time."""
+    t0 = inc.t - inc.dt
+    f = min(max((t - t0) / inc.dt, 0.0), 1.0) if inc.dt > 0 else 0.0
+    parts = []
+    for share, end, dt in ((f, t0 + f * inc.dt, f * inc.dt), (1.0 - f, inc.t, (1 - f) * inc.dt)):
+        wheels = None if inc.wheels is None else (share * inc.wheels[0], share * inc.wheels[1])
+        parts.append(
+            Increment(
+                end,
+                dt,
+                share * inc.ds,
+                share * inc.dtheta,
+                share * inc.cov,
+                wheels,
+                inc.brake_level,
+            )
+        )
+    return parts[0], parts[1]
+
+
+# the most of a wheel's distance that slip may be taken to hide (k·level is clipped to it)
+MAX_SLIP = 0.9
+
+
+def slip_corrected(
+    wheels: tuple[float, float], levels: tuple[float, float], k: np.ndarray, track: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ds, dθ) of an increment whose wheels slipped by s = k·level, and J = ∂(ds, dθ)/∂k.
+
+    A wheel with slip ratio s rolls (1 − s) of the ground it covers, so its true distance
+    is its encoder distance / (1 − k·level) (k·level clipped to ±MAX_SLIP, where J's
+    column is 0). k (..., 2): (k_left, k_right), e.g. one row per particle; returns ds,
+    dθ (...) and J (..., 2, 2), rows (ds, dθ), columns (k_left, k_right)."""
+    k = np.asarray(k, dtype=float)
+    level = np.asarray(levels, dtype=float)
+    u = k * level
+    inside = np.abs(u) < MAX_SLIP
+    scale = 1.0 / (1.0 - np.clip(u, -MAX_SLIP, MAX_SLIP))
+    d = np.asarray(wheels, dtype=float) * scale
+    dd = np.where(inside, d * scale * level, 0.0)  # ∂d/∂k of each wheel
+    j = np.empty((*k.shape[:-1], 2, 2))
+    j[..., 0, :] = 0.5 * dd
+    j[..., 1, 0] = -dd[..., 0] / track
+    j[..., 1, 1] = dd[..., 1] / track
+    ds, dth = wheel_increment(d[..., 0], d[..., 1], track)
+    return ds, dth, j
 
 
 class OdometryModel:
@@ -198,6 +287,13 @@ class OdometryModel:
         self._ticks: EncoderTicks | None = None
         self._velocity: VelocityOdometry | None = None
         self._brake_level = (0.0, 0.0)
+        self.gyro = (
+            GyroHeading(self.noise.gyro, calibration.metres_per_count / calibration.track_m)
+            if self.noise.gyro.enabled
+            else None
+        )
+        delay = self.noise.brake_delay_s
+        self._brake_schedule = None if delay is None else BrakeSchedule(delay)
 
     @property
     def has_odometry(self) -> bool:
@@ -208,27 +304,60 @@ class OdometryModel:
         """The motion since the previous odometry message, or None (first or other msg)."""
         if isinstance(msg, EncoderTicks):
             prev, self._ticks = self._ticks, msg
-            return None if prev is None else self._from_ticks(prev, msg)
+            inc = None if prev is None else self._from_ticks(prev, msg)
+            return self._with_gyro(prev or msg, msg, inc)
         if isinstance(msg, VelocityOdometry):
             prev, self._velocity = self._velocity, msg
-            return None if prev is None else self._from_velocity(prev, msg)
+            inc = None if prev is None else self._from_velocity(prev, msg)
+            return self._with_gyro(prev or msg, msg, inc)
         if isinstance(msg, BrakeCommand):
-            b = self.cal.brake
-            span = b.torque_max_nm - b.torque_off_nm
-            self._brake_level = (
-                min(max((msg.left_nm - b.torque_off_nm) / span, 0.0), 1.0),
-                min(max((msg.right_nm - b.torque_off_nm) / span, 0.0), 1.0),
-            )
+            self._brake_level = self.cal.brake.levels(msg)
+            if self.gyro is not None:
+                self.gyro.brakes(msg.t, self._brake_level)
+            if self._brake_schedule is not None:
+                self._brake_schedule.command(msg.t, self._brake_level)
+        elif isinstance(msg, GyroRate) and self.gyro is not None:
+            self.gyro.add(msg)
         return None
+
+    def _with_gyro(self, prev: Message, msg: Message, inc: Increment | None) -> Increment | None:
+        """The increment with its turn from the gyro when gyro fusion is on and the gyro
+        covers (prev.t, msg.t]; else as it is (`slam.gyro.GyroHeading.turn`, which also
+        gets the odometry's turn and its variance without braking for the bias)."""
+        if self.gyro is None:
+            return inc
+        if inc is None:
+            self.gyro.turn(prev.t, msg.t, 0.0, 0.0)  # the start, or no time passed
+            return None
+        if isinstance(msg, EncoderTicks) and isinstance(prev, EncoderTicks):
+            counts = abs(msg.left - prev.left) + abs(msg.right - prev.right)
+            rolled = counts * self.cal.metres_per_count
+            var = self.noise.gyro.encoder_wheel_m * rolled / self.cal.track_m**2
+        else:
+            var = float(inc.cov[1, 1])
+        fused = self.gyro.turn(prev.t, msg.t, inc.dtheta, var)
+        if fused is None:
+            return inc
+        dtheta, var = fused
+        cov = np.array([[float(inc.cov[0, 0]), 0.0], [0.0, var]])
+        return Increment(inc.t, inc.dt, inc.ds, dtheta, cov)
+
+    def diagnostics(self) -> dict:
+        """The gyro's bias and scale estimates, windows, fallbacks (empty without it)."""
+        return {} if self.gyro is None else {"gyro": self.gyro.diagnostics()}
 
     def _from_ticks(self, prev: EncoderTicks, msg: EncoderTicks) -> Increment:
         n = self.noise
-        m = self.cal.metres_per_count
-        d = [(msg.left - prev.left) * m, (msg.right - prev.right) * m]
+        m_left, m_right = self.cal.metres_per_count_per_wheel
+        d = [(msg.left - prev.left) * m_left, (msg.right - prev.right) * m_right]
+        counted = (d[0], d[1])
+        levels = self._brake_level
+        if self._brake_schedule is not None:
+            levels = self._brake_schedule.mean(prev.t, msg.t)
         var = [n.wheel_m * abs(d[0]), n.wheel_m * abs(d[1])]
         if n.brake_aware:
             for i in (0, 1):
-                level = self._brake_level[i]
+                level = levels[i]
                 var[i] += n.brake_wheel_m * level * abs(d[i])
                 d[i] /= 1.0 - min(n.bias_per_full_brake * level, 0.9)
         track = self.cal.track_m
@@ -238,7 +367,7 @@ class OdometryModel:
         cov = np.array(
             [[0.25 * (a + b), 0.5 * (b - a) / track], [0.5 * (b - a) / track, (a + b) / track**2]]
         )
-        return Increment(msg.t, msg.t - prev.t, ds, dth, cov)
+        return Increment(msg.t, msg.t - prev.t, ds, dth, cov, counted, levels)
 
     def _from_velocity(self, prev: VelocityOdometry, msg: VelocityOdometry) -> Increment | None:
         dt = msg.t - prev.t

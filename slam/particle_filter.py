@@ -36,6 +36,11 @@ the sensor's range and all bearings (ε = outlier_prob), so one wrong-ID or misr
 measurement (MRCLAM has a few, π off in bearing) cannot wipe out the particles that are
 right; the uniform floor is the z_rand of Thrun et al.'s beam model.
 
+Absolute observations (`absolute`, slam.absolute: a compass heading, a position fix),
+when switched on, weight the particles by the same kind of robust likelihood: a
+Gaussian in the (wrapped) residual mixed with a uniform over all headings or over a
+disc of positions (`absolute.outlier_prob`, `absolute.outlier_radius_m`).
+
 Weights live in log space, normalised with logsumexp; systematic resampling (as
 filterpy.monte_carlo.systematic_resample, vectorised and drawing from the filter's own
 generator) runs when N_eff = 1/Σw² falls below resample_threshold·N, checked before the
@@ -79,6 +84,12 @@ from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
 from mapping.grid import GridExtent
 from mapping.mapper import OccupancyMapper, Projection
+from slam.absolute import (
+    AbsoluteConfig,
+    AbsoluteObservation,
+    absolute_observation,
+    fused_count,
+)
 from slam.base import KnownMapConfig, Localizer, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
@@ -87,6 +98,7 @@ from slam.measurement import (
     LandmarkObservation,
     landmark_observation,
     range_bearing,
+    robust_log_likelihood,
 )
 from slam.motion import (
     Increment,
@@ -221,6 +233,8 @@ class ParticleFilterConfig(ParticleSettings):
         path_snapshot_s: the ancestry's sampling interval.
     proposal: "motion" or "scan" (module docstring); for "scan", lattice: its search
         lattices and prior floor (slam.scan_proposal.ProposalLattice).
+    absolute: compass / position-fix fusion (slam.absolute.AbsoluteConfig; off by
+        default; module docstring).
     Frames are scored against the attached map, the one map that the pipeline builds at
     this filter's estimates (Monte Carlo localization); slam.grid_rbpf (`grid-rbpf`) is
     the Rao-Blackwellized filter with a map per particle.
@@ -236,6 +250,7 @@ class ParticleFilterConfig(ParticleSettings):
     path_snapshot_s: float = 0.1
     proposal: Proposal = Proposal.MOTION
     lattice: ProposalLattice = field(default_factory=ProposalLattice)
+    absolute: AbsoluteConfig = field(default_factory=AbsoluteConfig)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -324,6 +339,8 @@ class ParticleFilter(Localizer):
             "resamples": 0,
             "n_eff_min": float(n),
         }
+        if self.pf.absolute.enabled:
+            self.counts.update(compass_updates=0, position_updates=0)
         self.track = TrajectoryRecorder()
         self._resample_due = False  # weights changed since the last resampling check
         self._obs_t = -math.inf  # time of the observations weighted in since then
@@ -359,6 +376,8 @@ class ParticleFilter(Localizer):
             self._record(msg.t)
         elif (obs := landmark_observation(msg, self.calibration)) is not None:
             self._observe_landmarks(obs)
+        elif (fix := absolute_observation(msg, self.pf.absolute)) is not None:
+            self._observe_absolute(fix)
         elif isinstance(msg, DepthFrame | LaserScan):
             self._observe_frame(msg, self._project(msg))
         if not self.track and self.odometry.has_odometry:
@@ -416,16 +435,21 @@ class ParticleFilter(Localizer):
         db = wrap_angle(z[None, :, 1] - zhat[..., 1]) / c.bearing_sigma_rad
         log_gauss = -0.5 * (dr * dr + db * db)  # (N, M), without the normaliser
         if c.outlier_prob > 0.0:
-            # log[(1 − ε) N + ε u] = log N + log1p(ε u / ((1 − ε) N)), per observation
             log_norm = -np.log(2.0 * math.pi * sr * c.bearing_sigma_rad)  # (M,)
             log_u = math.log(c.outlier_prob / (2.0 * math.pi * c.outlier_range_m))
-            log_in = math.log1p(-c.outlier_prob) + log_norm + log_gauss
-            log_lik = np.logaddexp(log_in, log_u) - log_norm
+            log_lik = robust_log_likelihood(log_gauss, log_norm, c.outlier_prob, log_u)
         else:
             log_lik = log_gauss
         self._update(np.sum(log_lik, axis=1), obs.t)
         self.counts["landmark_updates"] += 1
         self.counts["landmark_observations"] += len(rows)
+
+    def _observe_absolute(self, obs: AbsoluteObservation) -> None:
+        """Weight the particles by a compass heading's or a position fix's robust
+        likelihood (slam.absolute)."""
+        self._draw_odometry_noise()
+        self._update(obs.log_likelihood(self.particles, self.pf.absolute), obs.t)
+        self.counts[f"{obs.kind}_updates"] += 1
 
     def _observe_frame(self, msg: DepthFrame | LaserScan, projection: Projection) -> None:
         c = self.pf
@@ -678,9 +702,11 @@ class ParticleFilter(Localizer):
         return self._path_cache[1]
 
     def diagnostics(self) -> dict:
-        notes = dict(self.counts)
+        notes = {**self.counts, **self.odometry.diagnostics()}
         notes["particles"] = len(self.particles)
-        if self.counts["landmark_observations"] == 0 and self.counts["scan_updates"] == 0:
+        c = self.counts
+        absolute = fused_count(c)
+        if c["landmark_observations"] == 0 and c["scan_updates"] == 0 and absolute == 0:
             notes["note"] = ODOMETRY_ONLY_NOTE
         return notes
 

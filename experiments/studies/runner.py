@@ -35,10 +35,12 @@ def run_and_store(
     workers: int | None,
     address: str | None,
     progress: Callable[[int, int], None] | None,
+    run: Callable[[RunSpec], dict[str, Any]] = run_trial,
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, Path]]:
-    """(trial results, database rows, files) of the runs of `specs`."""
+    """(trial results, database rows, files) of the runs of `specs`, each run by `run`
+    (a module-level function: `run_trial` by default)."""
     results = run_tasks(
-        run_trial, specs, engine=engine, workers=workers, address=address, progress=progress
+        run, specs, engine=engine, workers=workers, address=address, progress=progress
     )
     rows = [result_row(r) for r in results]
     files = write_results(out, rows, columns, [(r["path"], r["estimate"]) for r in results])

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from experiments import metrics as M
+from experiments.calibration_override import CalibrationOverride
 from experiments.run import MAP_BAND_M
 from experiments.simulation import RunSpec, simulate
 from hardware.sim.simulator import WALKER_PARTS
@@ -50,11 +51,11 @@ def _decimate(t: np.ndarray, rate_hz: float) -> np.ndarray:
     return np.nonzero(keep)[0]
 
 
-def run_trial(spec: RunSpec) -> dict[str, Any]:
-    """Simulate one trial (`experiments.simulation.simulate`); returns {"spec", "config",
-    "metrics", "collisions", "path", "estimate"} (paths: arrays of (t, x, y, θ) rows at
-    PATH_RATE_HZ)."""
-    run = simulate(spec, command="study-run")
+def run_trial(spec: RunSpec, calibration: CalibrationOverride | None = None) -> dict[str, Any]:
+    """Simulate one trial (`experiments.simulation.simulate`; calibration: the software's,
+    from a file); returns {"spec", "config", "metrics", "collisions", "path", "estimate"}
+    (paths: arrays of (t, x, y, θ) rows at PATH_RATE_HZ)."""
+    run = simulate(spec, command="study-run", calibration=calibration)
     sim, world, pipeline, config, wall = run.sim, run.world, run.pipeline, run.config, run.wall_s
     loc, cal = pipeline.localizer, pipeline.calibration
     rec = pipeline.recorded

@@ -13,6 +13,7 @@ Formats (one module each; `available_formats()`):
     mrclam         hardware.datasets.mrclam         UTIAS MRCLAM folder, one robot
     carmen         hardware.datasets.carmen         CARMEN laser log (GMapping-corrected)
     victoria-park  hardware.datasets.victoria_park  ACFR Victoria Park folder
+    mtrx5700       hardware.datasets.mtrx5700       MTRX5700 Player/Stage folder (simulated)
 
 Each module's docstring documents its file format and every conversion decision.
 `hardware.datasets.base` has the shared machinery (Dataset, DatasetError, the registry,

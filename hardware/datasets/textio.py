@@ -113,13 +113,15 @@ def read_table(
     *,
     delimiter: str | None = None,
     skip_header: int = 0,
+    comments: tuple[str, ...] = ("#",),
 ) -> Table:
     """Numeric table (rows × columns, float64) of a text file, with line numbers.
 
-    Blank lines and lines starting with '#' are skipped; `skip_header` further lines
-    at the top of the file are skipped whatever they hold. Fields are separated by
-    whitespace (delimiter None) or by `delimiter` (surrounding spaces ignored, trailing
-    empty fields dropped). Every row must have exactly `columns` finite numbers.
+    Blank lines and lines starting with one of `comments` ('#') are skipped;
+    `skip_header` further lines at the top of the file are skipped whatever they hold.
+    Fields are separated by whitespace (delimiter None) or by `delimiter` (surrounding
+    spaces ignored, trailing empty fields dropped). Every row must have exactly
+    `columns` finite numbers.
     """
     rows: list[list[float]] = []
     linenos: list[int] = []
@@ -127,7 +129,7 @@ def read_table(
         if lineno <= skip_header:
             continue
         s = line.strip()
-        if not s or s.startswith("#"):
+        if not s or s.startswith(comments):
             continue
         if delimiter is None:
             parts = s.split()

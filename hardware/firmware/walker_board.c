@@ -44,6 +44,15 @@
  *    so that the H line arrives whole. The host's codec skips empty lines.
  *  - The main loop sleeps (idle mode) when it has nothing to do; any interrupt,
  *    at the latest the 1 ms clock, wakes it.
+ *  - Gyro (optional): an InvenSense MPU-6050 on the I2C bus (TWI: SDA = PC4/A4,
+ *    SCL = PC5/A5, 400 kHz, internal pull-ups besides the module's) at address 0x68.
+ *    At boot the firmware reads WHO_AM_I; if 0x68 answers it wakes the chip (PLL
+ *    clock), sets the gyro to +-250 deg/s (131 LSB per deg/s), its low-pass filter to
+ *    42 Hz and its sample rate to 1 kHz, announces the scale in H and appends the z
+ *    rate (GYRO_ZOUT, int16) to every T line, read by the main loop as it formats the
+ *    line. The TWI interrupt runs each transfer step by step; the main loop waits at
+ *    most 2 ms for one (a dead bus cannot hang it). No IMU, or a read that fails:
+ *    the field is left out.
  *
  * Build: make (Makefile in this folder); COUNTS_PER_REV from `make CPR=...`.
  * WALKER_TEST_HOOKS (the test build, build/walker_board_test.elf) adds one host
@@ -58,9 +67,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <util/atomic.h>
-#ifdef WALKER_TEST_HOOKS
 #include <util/delay.h>
-#endif
 
 #define PROTOCOL_VERSION 1
 #ifdef WALKER_TEST_HOOKS
@@ -79,6 +86,10 @@
 #define MAX_LINE 96 /* bytes of a line, '*CC' included, '\n' not (an S line: <= 92) */
 
 #define ENC_MASK (_BV(PD2) | _BV(PD3) | _BV(PD4) | _BV(PD5))
+
+#define IMU_ADDR 0x68          /* MPU-6050 with AD0 low */
+#define IMU_WHO_AM_I_VALUE 0x68
+#define GYRO_LSB_PER_10DPS 1310 /* FS_SEL 0: 131 LSB per deg/s, announced in H */
 
 /* ---------------------------------------------------------------- reset flags -- */
 
@@ -205,6 +216,173 @@ static void brakes_init(void)
     OCR1B = 0;
     TCCR1A = _BV(WGM10);                           /* fast PWM 8-bit (mode 5), */
     TCCR1B = _BV(WGM12) | _BV(CS11) | _BV(CS10);   /* prescaler 64: 976.6 Hz */
+}
+
+/* ---------------------------------------------------------------- gyro (I2C) -- */
+
+/* MPU-6050 registers (Register Map RM-MPU-6000A-00) */
+#define MPU_SMPLRT_DIV 0x19
+#define MPU_CONFIG 0x1A
+#define MPU_GYRO_CONFIG 0x1B
+#define MPU_GYRO_ZOUT_H 0x47
+#define MPU_PWR_MGMT_1 0x6B
+#define MPU_WHO_AM_I 0x75
+
+#define TW_STATUS (TWSR & 0xF8)
+#define TWI_WAIT_US 2000u /* a transfer takes ~200 us at 400 kHz; give up after 2 ms */
+
+/* An I2C transfer with the IMU, driven by the TWI interrupt one bus step at a time
+ * (as the Arduino Wire library does): write `len` bytes to, or read them from, the
+ * registers from `reg` on. The phase says what the last step was, so each step checks
+ * the status it must have produced. */
+enum {
+    TWI_START_SENT,
+    TWI_SLA_W_SENT,
+    TWI_REG_SENT,
+    TWI_DATA_SENT,
+    TWI_RESTART_SENT,
+    TWI_SLA_R_SENT,
+    TWI_RECEIVING,
+};
+
+static volatile uint8_t twi_buf[2];
+static volatile uint8_t twi_reg, twi_len, twi_pos, twi_writing, twi_phase;
+static volatile uint8_t twi_busy, twi_ok;
+static uint8_t imu_present;
+
+#define TWI_STEP(extra) (TWCR = (uint8_t)(_BV(TWINT) | _BV(TWEN) | _BV(TWIE) | (extra)))
+
+static void twi_finish(uint8_t ok)
+{
+    TWCR = _BV(TWINT) | _BV(TWEN) | _BV(TWSTO); /* stop; the interrupt off */
+    twi_ok = ok;
+    twi_busy = 0;
+}
+
+/* The next byte to receive, acknowledged unless it is the last. */
+static void twi_receive_next(void)
+{
+    twi_phase = TWI_RECEIVING;
+    TWI_STEP(twi_pos + 1 < twi_len ? _BV(TWEA) : 0);
+}
+
+ISR(TWI_vect)
+{
+    uint8_t st = TW_STATUS;
+    switch (twi_phase) {
+    case TWI_START_SENT:
+        if (st != 0x08)
+            break;
+        TWDR = IMU_ADDR << 1;
+        twi_phase = TWI_SLA_W_SENT;
+        TWI_STEP(0);
+        return;
+    case TWI_SLA_W_SENT: /* simavr 1.6 reports an acknowledged SLA+W as 0x28 */
+        if (st != 0x18 && st != 0x28)
+            break;
+        TWDR = twi_reg;
+        twi_phase = TWI_REG_SENT;
+        TWI_STEP(0);
+        return;
+    case TWI_REG_SENT:
+    case TWI_DATA_SENT:
+        if (st != 0x28)
+            break;
+        if (!twi_writing) {
+            twi_phase = TWI_RESTART_SENT;
+            TWI_STEP(_BV(TWSTA));
+        } else if (twi_pos < twi_len) {
+            TWDR = twi_buf[twi_pos++];
+            twi_phase = TWI_DATA_SENT;
+            TWI_STEP(0);
+        } else {
+            twi_finish(1);
+        }
+        return;
+    case TWI_RESTART_SENT:
+        if (st != 0x10)
+            break;
+        TWDR = IMU_ADDR << 1 | 1;
+        twi_phase = TWI_SLA_R_SENT;
+        TWI_STEP(0);
+        return;
+    case TWI_SLA_R_SENT:
+        if (st != 0x40)
+            break;
+        twi_receive_next();
+        return;
+    case TWI_RECEIVING:
+        if (st != 0x50 && st != 0x58)
+            break;
+        twi_buf[twi_pos++] = TWDR;
+        if (twi_pos < twi_len)
+            twi_receive_next();
+        else
+            twi_finish(1);
+        return;
+    }
+    twi_finish(0); /* not acknowledged, or the bus did something else */
+}
+
+/* One transfer, waited for with interrupts on (the main loop calls it). */
+static uint8_t twi_transfer(uint8_t reg, uint8_t len, uint8_t writing)
+{
+    uint16_t us = TWI_WAIT_US;
+    while ((TWCR & _BV(TWSTO)) && --us) /* the previous stop still on the bus */
+        _delay_us(1);
+    twi_reg = reg;
+    twi_len = len;
+    twi_pos = 0;
+    twi_writing = writing;
+    twi_phase = TWI_START_SENT;
+    twi_busy = 1;
+    TWI_STEP(_BV(TWSTA));
+    for (us = TWI_WAIT_US; twi_busy; us--) {
+        if (!us) { /* a dead bus: drop the transfer, start the TWI afresh */
+            TWCR = 0;
+            twi_busy = 0;
+            TWCR = _BV(TWEN);
+            return 0;
+        }
+        _delay_us(1);
+    }
+    return twi_ok;
+}
+
+static uint8_t imu_write(uint8_t reg, uint8_t value)
+{
+    twi_buf[0] = value;
+    return twi_transfer(reg, 1, 1);
+}
+
+static uint8_t imu_read(uint8_t reg, uint8_t n)
+{
+    return twi_transfer(reg, n, 0);
+}
+
+/* Finds and sets up the IMU; imu_present says whether it answered. */
+static void imu_init(void)
+{
+    PORTC |= _BV(PC4) | _BV(PC5); /* pull-ups: a bus without a module reads idle */
+    TWSR = 0;                     /* prescaler 1 */
+    TWBR = 12;                    /* SCL = F_CPU / (16 + 2 * 12) = 400 kHz */
+    TWCR = _BV(TWEN);
+    imu_present = imu_read(MPU_WHO_AM_I, 1) && twi_buf[0] == IMU_WHO_AM_I_VALUE &&
+                  imu_write(MPU_PWR_MGMT_1, 0x01) && /* awake, PLL with the X gyro */
+                  imu_write(MPU_SMPLRT_DIV, 0) &&   /* 1 kHz with the filter on */
+                  imu_write(MPU_CONFIG, 3) &&       /* DLPF: gyro 42 Hz, 4.8 ms */
+                  imu_write(MPU_GYRO_CONFIG, 0);    /* +-250 deg/s */
+    if (!imu_present)
+        TWCR = 0; /* the TWI off: PC4, PC5 back to plain pins */
+}
+
+/* The gyro's z rate in LSB; 0 if there is no IMU or the read failed. */
+static uint8_t imu_gyro_z(int16_t *rate)
+{
+    if (!imu_present || !imu_read(MPU_GYRO_ZOUT_H, 2))
+        return 0;
+    *rate = (int16_t)((uint16_t)twi_buf[0] << 8 | twi_buf[1]);
+    return 1;
 }
 
 /* ------------------------------------------------------------- clock, schedule -- */
@@ -428,6 +606,8 @@ static void send_handshake(void)
     out_u32(&o, report_rate_hz);
     out_u32(&o, COUNTS_PER_REV);
     out_u32(&o, mcusr_at_boot & 0x0F);
+    if (imu_present)
+        out_u32(&o, GYRO_LSB_PER_10DPS);
     out_send(&o, 0);
 }
 
@@ -466,6 +646,8 @@ static void send_tick(void)
         t.flags = tick_pending.flags;
         tick_ready = 0;
     }
+    int16_t gyro_z;
+    uint8_t have_gyro = imu_gyro_z(&gyro_z);
     out_line_t o;
     out_begin(&o, 'T');
     out_u32(&o, t.seq);
@@ -475,6 +657,8 @@ static void send_tick(void)
     out_u32(&o, t.pwm_left);
     out_u32(&o, t.pwm_right);
     out_u32(&o, t.flags);
+    if (have_gyro)
+        out_i32(&o, gyro_z);
     out_send(&o, 1);
 }
 
@@ -719,6 +903,7 @@ int main(void)
     set_sleep_mode(SLEEP_MODE_IDLE);
     wdt_enable(WDTO_250MS);
     sei();
+    imu_init(); /* its transfers run on the TWI interrupt */
     tx_line("\n", 1, 0); /* ends a line a reset cut short, so the host gets H whole */
     send_handshake();
 

@@ -26,7 +26,9 @@ Metadata records (MCAP metadata maps str to str, so each dict is stored as one k
     calibration   WalkerCalibration.to_dict(); required, a log without it is rejected
     <name>        every dict given as LogWriter(metadata={name: dict}), e.g. "config", "world",
                   "localizer_settings" (settings the source proposes to localizers,
-                  experiments.studies.settings.source_settings)
+                  experiments.studies.settings.source_settings); LogWriter.add_metadata
+                  writes one later, e.g. a simulated trial's "slip" at its end (the true
+                  per-wheel slip coefficients, hardware.sim.slip)
 
 Attachments: LogWriter(attachments={name: bytes}), media type application/octet-stream.
 
@@ -43,12 +45,15 @@ command stream). A topic holds a single message type.
     /tags/detections         TagDetections      json / walker.TagDetections
     /range_bearing           RangeBearing       json / walker.RangeBearing
     /odometry/velocity       VelocityOdometry   json / walker.VelocityOdometry
+    /imu/gyro                GyroRate           json / walker.GyroRate
     /scan                    LaserScan          protobuf / foxglove.LaserScan
     /scan/exact                companion        json / walker.LaserScanExact
     /groundtruth/pose        GroundTruthPose    protobuf / foxglove.PoseInFrame
     /groundtruth/pose/exact    companion        json / walker.GroundTruthPoseExact
     /collisions              Collision          json / walker.Collision
     /events                  DeviceEvent        json / walker.DeviceEvent
+    /compass                 CompassHeading     json / walker.CompassHeading
+    /fix                     PositionFix        json / walker.PositionFix
 
 JSON channels have schema encoding "jsonschema"; protobuf channels carry the
 FileDescriptorSet of the Foxglove schema (schema encoding "protobuf"). A channel's schema
@@ -79,11 +84,18 @@ JSON integers. Units are SI. Schemas (all fields required):
     walker.RangeBearing       t [s], landmark_id [int], range_m [m],
                               bearing_rad [rad, CCW from the robot heading]
     walker.VelocityOdometry   t [s], v [m/s forward], omega [rad/s yaw rate]
+    walker.GyroRate           t [s], rate_rad_s [rad/s: the gyro's z rate, CCW positive, raw
+                              (its bias and scale error included), the mean over the
+                              interval since its previous sample]
     walker.Collision          t [s], kind ["front" | "side" | "rear-wheel"], obstacle [str],
                               x, y [m, contact point in the world]
     walker.DeviceEvent        t [s], device [str], event [str: connected | disconnected |
                               reconnected | reset | rebased | gap-motion | stalled |
                               resumed], detail [str]
+    walker.CompassHeading     t [s], heading_rad [rad, CCW from the map's +x, (−π, π]],
+                              sigma_rad [rad, standard deviation; "NaN" when unknown]
+    walker.PositionFix        t [s], x, y [m, the reference point in the map frame],
+                              sigma_m [m, standard deviation per axis; "NaN" when unknown]
     walker.TagDetections      t [s], detections: list of {tag_id [int],
                               camera_T_tag [16 numbers: the 4×4 transform, row-major, m],
                               corners_px [8 numbers: u0, v0, ..., u3, v3, px],

@@ -36,12 +36,15 @@ from hardware.messages import (
     BrakeCommand,
     CameraIntrinsics,
     Collision,
+    CompassHeading,
     DepthFrame,
     DeviceEvent,
     EncoderTicks,
     GroundTruthPose,
+    GyroRate,
     LaserScan,
     Message,
+    PositionFix,
     RangeBearing,
     TagDetection,
     TagDetections,
@@ -324,6 +327,14 @@ CODECS: dict[type, Codec] = {
             {"v": "forward speed [m/s]", "omega": "yaw rate [rad/s]"},
         ),
         flat(
+            GyroRate,
+            "/imu/gyro",
+            {
+                "rate_rad_s": "yaw rate of the walker body [rad/s], z axis, CCW positive, "
+                "as the gyro reports it (mean over the interval since its previous sample)"
+            },
+        ),
+        flat(
             Collision,
             "/collisions",
             {
@@ -372,6 +383,23 @@ CODECS: dict[type, Codec] = {
             PoseInFrame.FromString,
             _dec_pose,
             (Companion(POSE_EXACT, _exact_topic, _json),),
+        ),
+        flat(
+            CompassHeading,
+            "/compass",
+            {
+                "heading_rad": "heading [rad], CCW from the map's +x, in (-pi, pi]",
+                "sigma_rad": "standard deviation [rad], NaN when unknown",
+            },
+        ),
+        flat(
+            PositionFix,
+            "/fix",
+            {
+                "x": "position x [m, map frame]",
+                "y": "position y [m, map frame]",
+                "sigma_m": "standard deviation per axis [m], NaN when unknown",
+            },
         ),
     )
 }

@@ -30,6 +30,16 @@ def _best_compression() -> CompressionType:
     return CompressionType.NONE
 
 
+def _metadata_record(name: str, d: dict[str, Any]) -> tuple[str, bytes]:
+    """(name, strict JSON) of a metadata record; "calibration" is the writer's own."""
+    if name == "calibration":
+        raise ValueError("metadata name 'calibration' is reserved")
+    try:
+        return name, dumps(d)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"metadata {name!r} is not strict JSON: {e}") from None
+
+
 class LogWriter:
     """Writes a trial log; crash-safe (see the `hardware.log` docstring) and thread-safe.
 
@@ -54,13 +64,7 @@ class LogWriter:
         self._interval = flush_interval_s
         self._fsync = fsync
         records = [("calibration", dumps(calibration.to_dict()))]
-        for name, d in (metadata or {}).items():
-            if name == "calibration":
-                raise ValueError("metadata name 'calibration' is reserved")
-            try:
-                records.append((name, dumps(d)))
-            except (TypeError, ValueError) as e:
-                raise ValueError(f"metadata {name!r} is not strict JSON: {e}") from None
+        records += [_metadata_record(name, d) for name, d in (metadata or {}).items()]
         self._file = open(self.path, "wb")
         self._mcap = Writer(self._file, compression=_best_compression())
         self._mcap.start(profile="", library=f"{FORMAT} ({LIBRARY_IDENTIFIER})")
@@ -111,6 +115,15 @@ class LogWriter:
                 or time.monotonic() - self._last_flush >= self._interval
             ):
                 self._flush_locked()
+
+    def add_metadata(self, name: str, d: dict[str, Any]) -> None:
+        """Write one more metadata record now (what is known only at the end of a run,
+        e.g. a simulation's true slip); a recorder killed before loses it."""
+        record = _metadata_record(name, d)
+        with self._lock:
+            if self._closed:
+                raise ValueError(f"{self.path}: log writer is closed")
+            self._mcap.add_metadata(record[0], {"json": record[1].decode()})
 
     def flush(self) -> None:
         """Close the current chunk and hand everything written so far to the OS."""

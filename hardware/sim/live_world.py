@@ -2,13 +2,17 @@
 
     python -m hardware.sim.live_world --dir DIR [--course NAME] [--seed N] [--surface S]
         [--duration S] [--depth-size WxH] [--depth-rate HZ] [--board emulator|firmware]
+        [--gyro]
 
 Runs the simulator in real time and exposes it as the real walker is exposed: its board
 on a serial port (`DIR/tty`: the pure-Python board emulator, or the compiled firmware
 running in simavr with `--board firmware`), whose encoder counts are the simulated
 wheels' and whose brake outputs set the simulated brakes; and its cameras and truth on
 a stream socket (`DIR/sensors.sock`, `hardware.sim.stream`). `walkerslam live` then
-drives it with exactly the drivers and loop it uses on the walker.
+drives it with exactly the drivers and loop it uses on the walker. With `--gyro` the
+simulated walker carries its yaw-rate gyro (`hardware.sim.gyro`) as an MPU-6050 on the
+board's I²C bus: the board (emulator or firmware) reports the gyro's latest rate with
+every tick.
 
 It talks to whoever started it through JSON lines on stdout:
 
@@ -50,8 +54,16 @@ import time
 from collections import deque
 from pathlib import Path
 
-from hardware.messages import BrakeCommand, Collision, DepthFrame, GroundTruthPose, TagDetections
+from hardware.messages import (
+    BrakeCommand,
+    Collision,
+    DepthFrame,
+    GroundTruthPose,
+    GyroRate,
+    TagDetections,
+)
 from hardware.sim import stream
+from hardware.sim.gyro import GyroSimConfig
 from hardware.sim.simulator import SimConfig, Simulator
 from hardware.sim.world import load_world
 
@@ -71,15 +83,15 @@ def _say(**event) -> None:
     sys.stdout.flush()
 
 
-def _open_board(kind: str, link: Path, cpr: int):
+def _open_board(kind: str, link: Path, cpr: int, imu: bool = False):
     if kind == "emulator":
         from hardware.board_emulator import BoardEmulator
 
-        return BoardEmulator(link, cpr=cpr)
+        return BoardEmulator(link, cpr=cpr, imu=imu)
     if kind == "firmware":
         from hardware.firmware_sim import FirmwareSim
 
-        return FirmwareSim(link=link)
+        return FirmwareSim(link=link, imu=imu)
     raise ValueError(f"unknown board {kind!r}; valid: emulator, firmware")
 
 
@@ -95,7 +107,9 @@ def main(argv: list[str] | None = None) -> int:
     folder.mkdir(parents=True, exist_ok=True)
     sock_path = folder / "sensors.sock"
     server = _listen(sock_path)
-    board = _open_board(args.board, folder / "tty", sim.calibration.counts_per_rev)
+    board = _open_board(args.board, folder / "tty", sim.calibration.counts_per_rev, args.gyro)
+    if sim.gyro is not None:  # at rest until the walk starts, the gyro reads its bias
+        board.set_gyro_rate(sim.gyro.bias)
     stop = {"now": False}
 
     def on_term(*_: object) -> None:
@@ -133,6 +147,7 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--depth-size", default="160x120")
     ap.add_argument("--depth-rate", type=int, default=10)
     ap.add_argument("--board", default="emulator", choices=("emulator", "firmware"))
+    ap.add_argument("--gyro", action="store_true", help="the walker's gyro, on the board")
     ap.add_argument("--accept-timeout", type=float, default=60.0)
     return ap.parse_args(argv)
 
@@ -156,6 +171,7 @@ def _sim_config(args: argparse.Namespace) -> SimConfig:
         depth_rate_hz=args.depth_rate,
         depth_width=width,
         depth_height=height,
+        gyro=GyroSimConfig(enabled=args.gyro),
     )
 
 
@@ -259,6 +275,9 @@ def _run(sim: Simulator, board, conn: Sender, stop: dict) -> None:
         target = time.monotonic() - t0
         msgs = sim.poll(min(target, sim.t + 0.02)) if target > sim.t else []
         board.set_counts(*sim.encoders.counts())
+        rates = [m.rate_rad_s for m in msgs if isinstance(m, GyroRate)]
+        if rates:  # the board reports the latest with its ticks
+            board.set_gyro_rate(rates[-1])
         camera_on = time.monotonic() >= stalled_until
         for m in msgs:
             frame = isinstance(m, DepthFrame | TagDetections)

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from hardware.calibration import WalkerCalibration
+from hardware.calibration import WalkerCalibration, wheel_diameters
 from hardware.messages import (
     BrakeCommand,
     CameraIntrinsics,
@@ -26,16 +26,19 @@ from hardware.messages import (
     DepthFrame,
     EncoderTicks,
     GroundTruthPose,
+    GyroRate,
     Message,
     TagDetections,
 )
 from hardware.sim.depth_camera import DepthCameraConfig, SimDepthCamera
 from hardware.sim.dynamics import Brakes, WalkerParams, WalkerState, step
+from hardware.sim.gyro import GyroSimConfig, SimGyro
 from hardware.sim.slip import (
     Encoders,
     SlipModel,
+    SlipTruth,
     proposed_localizer_settings,
-    surface_coefficient,
+    wheel_slip_coefficients,
 )
 from hardware.sim.tag_camera import SimTagCamera, TagCameraConfig
 from hardware.sim.user import ConstantPush, RouteFollower, UserParams, UserProfile
@@ -89,8 +92,15 @@ class SimConfig:
 
     Rates must divide physics_rate_hz. The software's calibration is the true walker
     plus the *_error_m values (the thesis code used a 203 mm wheel; it measures 204 mm).
+    wheel_diameter_ratio_error: the true walker's right wheel is (1 + this) times its
+    left wheel in diameter (their mean is walker.wheel_diameter_m), while the software
+    believes them equal; 0: equal wheels, as before the option existed.
     user_profile: this trial's user (route offset and wander, push, impairment; see
     `UserProfile`) applied to `user` and the world's route; None: `user` on the route.
+    gyro: the simulated yaw-rate gyro (`hardware.sim.gyro`), off by default; its draws
+    come from a seed stream of their own, so switching it on changes no other sensor.
+    slip_scale: (left, right) factors of the surface's slip coefficient per wheel
+    (`hardware.sim.slip`); (1, 1): both wheels slip alike.
     """
 
     surface: str | float = "dusty"
@@ -105,14 +115,17 @@ class SimConfig:
     depth_height: int = 120
     wheel_diameter_error_m: float = -0.001
     track_error_m: float = 0.0
+    wheel_diameter_ratio_error: float = 0.0
     walker: WalkerParams = field(default_factory=WalkerParams)
     user: UserParams = field(default_factory=UserParams)
     user_profile: UserProfile | None = None
     depth: DepthCameraConfig = field(default_factory=DepthCameraConfig)
     tags: TagCameraConfig = field(default_factory=TagCameraConfig)
+    gyro: GyroSimConfig = field(default_factory=GyroSimConfig)
+    slip_scale: tuple[float, float] = (1.0, 1.0)
 
     def __post_init__(self) -> None:
-        surface_coefficient(self.surface)
+        wheel_slip_coefficients(self.surface, self.slip_scale)
         if not (math.isfinite(self.duration_s) and self.duration_s > 0):
             raise ValueError(f"duration must be > 0 s, got {self.duration_s}")
         for name in ("encoder_rate_hz", "depth_rate_hz", "tag_rate_hz", "groundtruth_rate_hz"):
@@ -121,11 +134,26 @@ class SimConfig:
                 raise ValueError(
                     f"{name}={rate} must divide physics_rate_hz={self.physics_rate_hz}"
                 )
+        if self.physics_rate_hz % self.gyro.rate_hz:
+            raise ValueError(
+                f"gyro.rate_hz={self.gyro.rate_hz} must divide physics_rate_hz="
+                f"{self.physics_rate_hz}"
+            )
         if self.physics_rate_hz < 200:
             raise ValueError("physics_rate_hz must be >= 200")
+        if not (
+            math.isfinite(self.wheel_diameter_ratio_error) and self.wheel_diameter_ratio_error > -1
+        ):
+            raise ValueError(
+                f"wheel_diameter_ratio_error must be > -1, got {self.wheel_diameter_ratio_error}"
+            )
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def true_wheel_diameters_m(self) -> tuple[float, float]:
+        """(left, right) diameters of the true walker's wheels."""
+        return wheel_diameters(self.walker.wheel_diameter_m, 1.0 + self.wheel_diameter_ratio_error)
 
     def calibration(self) -> WalkerCalibration:
         """What the walker's software believes (encoders, track, cameras)."""
@@ -153,27 +181,44 @@ class _ContactEpisode:
 
 
 class Simulator:
-    """A walker in a world, pushed by a user; see the module docstring."""
+    """A walker in a world, pushed by a user; see the module docstring.
+
+    calibration: what the walker's software believes (default `config.calibration()`,
+    the true walker plus the configured errors); the simulated sensors are the truth.
+    """
 
     def __init__(
-        self, world: World, config: SimConfig, user: RouteFollower | ConstantPush | None = None
+        self,
+        world: World,
+        config: SimConfig,
+        user: RouteFollower | ConstantPush | None = None,
+        calibration: WalkerCalibration | None = None,
     ):
         self.world = world
         self.config = config
-        self.calibration = config.calibration()
-        seeds = np.random.SeedSequence(config.seed).spawn(5)
-        rng_slip, rng_user, rng_depth, rng_tags, rng_vision = (
+        self.calibration = calibration or config.calibration()
+        # one stream per part; the gyro's is the fifth and the user's sight the sixth,
+        # so the first four are as before either was added
+        seeds = np.random.SeedSequence(config.seed).spawn(6)
+        rng_slip, rng_user, rng_depth, rng_tags, rng_gyro, rng_vision = (
             np.random.default_rng(s) for s in seeds
         )
         w = config.walker
         x0, y0, th0 = world.start_pose
         self.state = WalkerState(x=x0, y=y0, phi=th0)
         self.brakes = Brakes(w)
-        self.slip = SlipModel(config.surface, w.brake_torque_max_nm / w.wheel_radius_m, rng_slip)
+        self.slip = SlipModel(
+            config.surface,
+            w.brake_torque_max_nm / w.wheel_radius_m,
+            rng_slip,
+            wheel_scale=config.slip_scale,
+        )
+        self.slip_truth = SlipTruth()
+        self._brake_level = (0.0, 0.0)  # of the last command, as the localizers read it
         # The encoders turn with the *true* wheels; counts_per_rev as calibrated.
-        self.encoders = Encoders(w.wheel_diameter_m, self.calibration.counts_per_rev)
+        self.encoders = Encoders(config.true_wheel_diameters_m(), self.calibration.counts_per_rev)
         if user is None:
-            params, route = config.user, world.route
+            params, route = replace(config.user, **world.user), world.route
             if config.user_profile is not None:
                 params = config.user_profile.apply(params)
                 route = config.user_profile.walk_route(route)
@@ -183,6 +228,7 @@ class Simulator:
         self.user = user
         self.depth_camera = SimDepthCamera(world, self.calibration, config.depth, rng_depth)
         self.tag_camera = SimTagCamera(world, self.calibration, config.tags, rng_tags)
+        self.gyro = SimGyro(config.gyro, rng_gyro) if config.gyro.enabled else None
         self.dt = 1.0 / config.physics_rate_hz
         self.steps = 0
         self._started = False  # the sensors at t = 0 were returned
@@ -190,6 +236,7 @@ class Simulator:
             name: config.physics_rate_hz // getattr(config, f"{name}_rate_hz")
             for name in ("encoder", "depth", "tag", "groundtruth")
         }
+        self._every["gyro"] = config.physics_rate_hz // config.gyro.rate_hz
         self._last_contact: dict[str, float] = {}
         self._episodes: dict[str, _ContactEpisode] = {}
         self.scrapes = 0  # contact episodes that never became collisions
@@ -208,11 +255,32 @@ class Simulator:
     @property
     def metadata(self) -> dict[str, Any]:
         """The world with its true obstacles and tags, the simulation config, and the
-        odometry noise of the simulated encoders that the trial proposes to localizers."""
-        return {
+        odometry noise of the simulated encoders that the trial proposes to localizers;
+        with the gyro, its drawn turn-on bias and scale error ("gyro": the truth an
+        estimate of them is scored against)."""
+        meta = {
             "world": self.world.to_dict(),
             "sim": self.config.to_dict(),
             PROPOSED_SETTINGS: proposed_localizer_settings(self.config.surface),
+        }
+        if self.gyro is not None:
+            meta["gyro"] = {
+                "part": "InvenSense MPU-6050 (simulated)",
+                "turn_on_bias_rad_s": self.gyro.turn_on_bias,
+                "scale_error": self.gyro.scale_error,
+            }
+        return meta
+
+    def slip_summary(self) -> dict[str, Any]:
+        """The true slip of the run so far (`hardware.sim.slip`): each wheel's k at full
+        brake force (k_surface × slip_scale), the effective k per unit commanded brake
+        level that the localizers estimate (None for a wheel never braked), and the
+        ground distance each wheel rolled braked. Written to a trial log's metadata
+        "slip" when the run ends."""
+        return {
+            "k_wheel": list(self.slip.k_wheel),
+            "k_effective": list(self.slip_truth.effective_k()),
+            "braked_distance_m": list(self.slip_truth.braked_m),
         }
 
     def pose(self) -> np.ndarray:
@@ -222,6 +290,7 @@ class Simulator:
         """Set the brake command; torques pass through the board's PWM quantisation."""
         cal = self.calibration.brake
         self.brakes.set_command(cal.torque(cal.pwm(cmd.left_nm)), cal.torque(cal.pwm(cmd.right_nm)))
+        self._brake_level = (cal.level(cmd.left_nm), cal.level(cmd.right_nm))
 
     def poll(self, until: float, stop_at_frame: bool = False) -> list[Message]:
         """Advance to `until` (or until done) and return the messages that fell due;
@@ -255,11 +324,15 @@ class Simulator:
         self.brakes.step(dt)
         wl, wr = s.wheel_speeds(w.half_track_m)
         f_bl, f_br = self.brakes.ground_forces(wl, wr)
+        phi = s.phi
         step(s, w, handle_l, handle_r, f_bl, f_br, dt)
         self.steps += 1
+        if self.gyro is not None:
+            self.gyro.turn(math.remainder(s.phi - phi, 2.0 * math.pi), dt)
         wl, wr = s.wheel_speeds(w.half_track_m)
         self.last_slip = self.slip.step(dt, (f_bl, f_br))
         self.encoders.roll(wl * dt, wr * dt, self.last_slip)
+        self.slip_truth.add((wl * dt, wr * dt), self.last_slip, self._brake_level)
         self._collide(out)
 
     def _parts_in_world(self) -> list[tuple[str, np.ndarray]]:
@@ -370,6 +443,10 @@ class Simulator:
         if first or k % e["groundtruth"] == 0:
             s = self.state
             out.append(GroundTruthPose(t, s.x, s.y, s.phi))
+        # the gyro before the encoders of the same instant: a localizer integrates the
+        # rate up to the ticks' time
+        if self.gyro is not None and (first or k % e["gyro"] == 0):
+            out.append(GyroRate(t, self.gyro.sample()))
         if first or k % e["encoder"] == 0:
             left, right = self.encoders.counts()
             out.append(EncoderTicks(t, left, right))

@@ -9,7 +9,20 @@ reckoning curves toward the braked side — much more on a dusty floor.
 Model (a modelling assumption, not a measurement): s = k_surface · F_b / F_b,max ·
 m(t), clipped to [0, 0.95], where m(t) is a log-normal, time-correlated factor (an
 Ornstein–Uhlenbeck process in log space) drawn from the run's seed. k_surface is the slip
-ratio at full brake force: `clean` 0.02, `dusty` 0.12, or any number in [0, 0.95].
+ratio at full brake force: `clean` 0.02, `dusty` 0.12, or any number in [0, 0.95];
+each wheel's k is k_surface times its own factor (`wheel_scale`, default (1, 1): a
+left tyre that slips more than the right is (1.5, 1.0)).
+
+What a localizer can estimate of k (`SlipTruth`): the localizers know the commanded
+torque τ of each brake, as a level l = (τ − τ_off)/(τ_max − τ_off) ∈ [0, 1], and model
+s = k·l. The simulator's s differs from k_wheel·l: its force follows the command
+through the brakes' 25 ms lag, carries the residual torque τ_off even at l = 0 (F_b /
+F_b,max = τ/τ_max = 0.017 + 0.983·l), fades at walking pace near standstill, and m(t)
+is 1 only on average. The *effective* k of a wheel is the least-squares slope of its
+simulated slip on the commanded level, weighted by the ground distance the wheel
+rolled: k_eff = Σ|g|·s·l / Σ|g|·l² over the physics steps (those at l = 0 count in
+neither sum) — the k that best explains the encoder's lost distance in the localizers'
+parameterisation, and what their estimates are judged against.
 """
 
 from __future__ import annotations
@@ -62,6 +75,52 @@ def proposed_localizer_settings(surface: str | float) -> dict[str, float]:
     return {"noise.wheel_m": 5e-5 + 7e-3 * k**1.25}
 
 
+def wheel_slip_coefficients(
+    surface: str | float, wheel_scale: tuple[float, float]
+) -> tuple[float, float]:
+    """Each wheel's slip ratio at full brake force, k_surface · scale (left, right)."""
+    k = surface_coefficient(surface)
+    if len(wheel_scale) != 2:
+        raise ConfigError(f"slip_scale must be two factors (left, right), got {wheel_scale}")
+    out = []
+    for side, f in zip(("left", "right"), wheel_scale, strict=True):
+        try:
+            value = k * float(f)
+        except (TypeError, ValueError):
+            raise ConfigError(f"slip_scale {side} must be a number, got {f!r}") from None
+        if not (math.isfinite(value) and float(f) >= 0 and value <= 0.95):
+            raise ConfigError(
+                f"slip_scale {side} {f}: the wheel's slip coefficient {k} × {f} must be "
+                "in [0, 0.95]"
+            )
+        out.append(value)
+    return out[0], out[1]
+
+
+class SlipTruth:
+    """The effective per-wheel k of a run (module docstring), accumulated step by step:
+    Σ|g|·s·l and Σ|g|·l² per wheel, l the commanded brake level."""
+
+    def __init__(self) -> None:
+        self._sl = [0.0, 0.0]
+        self._ll = [0.0, 0.0]
+        self.braked_m = [0.0, 0.0]  # ground distance rolled with l > 0
+
+    def add(self, ground: tuple[float, float], slip: tuple[float, float], level) -> None:
+        """One physics step: each wheel's ground distance, slip ratio and brake level."""
+        for i in (0, 1):
+            if level[i] > 0.0:
+                g = abs(ground[i])
+                self._sl[i] += g * slip[i] * level[i]
+                self._ll[i] += g * level[i] * level[i]
+                self.braked_m[i] += g
+
+    def effective_k(self) -> tuple[float | None, float | None]:
+        """(left, right) least-squares k per unit level; None for a wheel never braked."""
+        out = [self._sl[i] / self._ll[i] if self._ll[i] > 0 else None for i in (0, 1)]
+        return out[0], out[1]
+
+
 class SlipModel:
     """Slip ratio of each rear wheel as a function of its brake force."""
 
@@ -72,8 +131,10 @@ class SlipModel:
         rng: np.random.Generator,
         variability: float = 0.3,
         correlation_time_s: float = 0.5,
+        wheel_scale: tuple[float, float] = (1.0, 1.0),
     ) -> None:
         self.k = surface_coefficient(surface)
+        self.k_wheel = wheel_slip_coefficients(surface, wheel_scale)
         self.max_force = max_brake_force_n
         self.rng = rng
         self.sigma = variability
@@ -89,15 +150,27 @@ class SlipModel:
         for i in (0, 1):
             self._log_factor[i] = a * self._log_factor[i] + scale * float(noise[i])
             factor = math.exp(self._log_factor[i] - 0.5 * self.sigma**2)
-            out.append(min(max(self.k * abs(brake_forces[i]) / self.max_force * factor, 0.0), 0.95))
+            out.append(
+                min(
+                    max(self.k_wheel[i] * abs(brake_forces[i]) / self.max_force * factor, 0.0), 0.95
+                )
+            )
         return out[0], out[1]
 
 
 class Encoders:
-    """Quadrature encoders on the true wheels: cumulative counts of wheel rotation."""
+    """Quadrature encoders on the true wheels: cumulative counts of wheel rotation.
 
-    def __init__(self, wheel_diameter_m: float, counts_per_rev: int) -> None:
-        self.counts_per_metre = counts_per_rev / (math.pi * wheel_diameter_m)
+    wheel_diameter_m: both wheels', or (left, right) when they differ."""
+
+    def __init__(self, wheel_diameter_m: float | tuple[float, float], counts_per_rev: int) -> None:
+        left, right = (
+            wheel_diameter_m if isinstance(wheel_diameter_m, tuple) else (wheel_diameter_m,) * 2
+        )
+        self._counts_per_metre = (
+            counts_per_rev / (math.pi * left),
+            counts_per_rev / (math.pi * right),
+        )
         self._rolled = [0.0, 0.0]  # metres of circumference rolled (signed)
 
     def roll(self, ground_left: float, ground_right: float, slip: tuple[float, float]) -> None:
@@ -108,6 +181,6 @@ class Encoders:
     def counts(self) -> tuple[int, int]:
         # A quadrature counter reports whole counts (floor, also for negative rotation).
         return (
-            math.floor(self._rolled[0] * self.counts_per_metre),
-            math.floor(self._rolled[1] * self.counts_per_metre),
+            math.floor(self._rolled[0] * self._counts_per_metre[0]),
+            math.floor(self._rolled[1] * self._counts_per_metre[1]),
         )

@@ -54,6 +54,9 @@ class UserParams:
     scrape_turn_rad_s / scrape_s: a contact
     they feel but that does not stop them (a scrape) makes them steer away from it this
     fast for this long.
+    sighted: they see where the walker is (e.g. a helper pushing it along tape on the
+    floor for a calibration run): their sense of position is the true pose, and the
+    impairment values above do not apply.
     """
 
     speed_mps: float = 0.75
@@ -79,6 +82,7 @@ class UserParams:
     gap_margin_m: float = 0.3
     scrape_turn_rad_s: float = 0.3
     scrape_s: float = 0.5
+    sighted: bool = False
 
 
 @dataclass(frozen=True)
@@ -273,6 +277,9 @@ class RouteFollower:
 
     # -- belief -----------------------------------------------------------------------
     def _feel_motion(self, state: WalkerState, dt: float) -> None:
+        if self.p.sighted:
+            self.belief[:] = (state.x, state.y, state.phi)
+            return
         ds = state.v * dt * (1.0 + self.p.distance_scale_error)
         walked = abs(state.v * dt)
         dphi = state.omega * dt + self.p.heading_bias_rad_per_m * walked

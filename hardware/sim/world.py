@@ -19,8 +19,13 @@ Course JSON format (one object)::
                 "corner_radius": 0.5,              # default fillet radius at corners
                 "spacing": 0.5},                   # longest segment after resampling
       "obstacles": [ ... ],
-      "tags": [ ... ]
+      "tags": [ ... ],
+      "user": {"sighted": true, "lookahead_m": 0.5}  # optional: how the route is walked
     }
+
+`user` (optional) sets fields of the simulated user's `UserParams`
+(`hardware/sim/user.py`) for this course, e.g. a sighted helper following tape on the
+floor for a calibration run (`umbmark`); without it the user is the simulation's.
 
 `World.to_dict` adds "format": "walker-slam-world" and "version": 1, and writes the
 route as a plain list, obstacles as explicit boxes and tags as explicit poses. Unknown
@@ -70,7 +75,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -80,6 +85,7 @@ import numpy as np
 from hardware.errors import ConfigError, UnknownNameError
 from hardware.frames import make_transform
 from hardware.sim.collision import Contact, PolygonSet, rectangle
+from hardware.sim.user import UserParams
 
 OBSTACLE_KINDS = ("wall", "table", "desk", "chair", "office-chair", "box")
 COLLISION_BAND_M = (0.0, 0.95)  # the walker frame stands up to ~0.95 m
@@ -222,7 +228,8 @@ class World:
     """Obstacles, tags, the route a simulated user follows and where the walker starts.
 
     bounds: (xmin, xmax, ymin, ymax) area of interest; route: (N, 2) waypoints;
-    start_pose: (x, y, θ) of the walker's rear-axle centre.
+    start_pose: (x, y, θ) of the walker's rear-axle centre; user: `UserParams` fields
+    that this course's route is walked with (module docstring).
     """
 
     name: str
@@ -231,6 +238,7 @@ class World:
     tags: tuple[TagPose, ...]
     route: np.ndarray
     start_pose: tuple[float, float, float]
+    user: dict[str, Any] = field(default_factory=dict)
     _boxes: np.ndarray = field(init=False, repr=False)
     _box_owner: np.ndarray = field(init=False, repr=False)
     _tag_host: np.ndarray = field(init=False, repr=False)
@@ -252,6 +260,7 @@ class World:
         if len(sp) != 3 or not all(math.isfinite(v) for v in sp):
             raise ValueError(f"start_pose must be three finite numbers (x, y, θ), got {sp}")
         object.__setattr__(self, "start_pose", sp)
+        object.__setattr__(self, "user", user_params_overrides(self.user))
         object.__setattr__(self, "obstacles", tuple(self.obstacles))
         object.__setattr__(self, "tags", tuple(self.tags))
         names = [o.name for o in self.obstacles]
@@ -383,6 +392,7 @@ class World:
     def to_dict(self) -> dict[str, Any]:
         """JSON-able description that `from_dict` turns back into an equal world."""
         keys = ("cx", "cy", "yaw", "sx", "sy", "z0", "z1")
+        user = {"user": dict(self.user)} if self.user else {}
         return {
             "format": "walker-slam-world",
             "version": _FORMAT_VERSION,
@@ -401,6 +411,7 @@ class World:
             "tags": [
                 {"id": t.tag_id, "x": t.x, "y": t.y, "z": t.z, "yaw": t.yaw} for t in self.tags
             ],
+            **user,
         }
 
     @classmethod
@@ -411,6 +422,23 @@ class World:
             return _parse_world(d)
         except (_SpecError, ValueError) as e:
             raise ConfigError(f"{source}: {e}") from None
+
+
+def user_params_overrides(user: dict[str, Any]) -> dict[str, Any]:
+    """`user` checked as `UserParams` fields: known names, true/false for the flags, finite
+    numbers for the rest (ValueError naming the field)."""
+    kinds = {f.name: f.type for f in fields(UserParams)}
+    out: dict[str, Any] = {}
+    for name, value in dict(user).items():
+        if name not in kinds:
+            raise ValueError(f"user: unknown setting {name!r}; valid: {', '.join(kinds)}")
+        if (kinds[name] in ("bool", bool)) != isinstance(value, bool) or not (
+            isinstance(value, bool) or _is_num(value)
+        ):
+            want = "true or false" if kinds[name] in ("bool", bool) else "a finite number"
+            raise ValueError(f"user: {name!r} must be {want}, got {value!r}")
+        out[name] = value
+    return out
 
 
 # ---------------------------------------------------------------------------------------
@@ -770,8 +798,11 @@ def _parse_world(d: Any) -> World:
         te = _Entry(td, f"tags[{i}]")
         attached.append(isinstance(td, dict) and "on" in td)
         tags.append(_parse_tag(te, frames))
+    user = e.get("user", {})
+    if not isinstance(user, dict):
+        raise _SpecError(f"'user' must be an object of user settings, got {user!r}")
     e.done()
-    world = World(name, tuple(bounds), tuple(obstacles), tuple(tags), route, start)  # type: ignore[arg-type]
+    world = World(name, tuple(bounds), tuple(obstacles), tuple(tags), route, start, user)  # type: ignore[arg-type]
     for t, att, host in zip(tags, attached, world.tag_host_boxes, strict=True):
         if att and host < 0:
             raise _SpecError(

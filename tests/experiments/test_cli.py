@@ -197,6 +197,25 @@ def test_simulate_needs_a_positive_duration(tmp_path, duration):
     assert not out.exists()
 
 
+def test_simulate_slip_scale_reaches_the_log(tmp_path):
+    """Each wheel's slip coefficient is the surface's times its --slip-scale factor; the
+    log's metadata has the factors ("sim") and the run's true slip ("slip")."""
+    from hardware.log import read_log
+
+    out = tmp_path / "t.mcap"
+    res = walkerslam("simulate", "-o", out, "--duration", "3", "--slip-scale", "1.5,0.5")
+    assert res.returncode == 0, res.stderr
+    meta = read_log(out).metadata
+    assert meta["sim"]["slip_scale"] == [1.5, 0.5]
+    assert meta["slip"]["k_wheel"] == pytest.approx([0.18, 0.06])
+    assert len(meta["slip"]["k_effective"]) == 2
+    bad = walkerslam("simulate", "-o", tmp_path / "b.mcap", "--slip-scale", "1,x")
+    assert_one_line_error(bad, "--slip-scale")
+    bad = walkerslam("simulate", "-o", tmp_path / "b.mcap", "--slip-scale", "1,9")
+    assert_one_line_error(bad, "slip_scale right 9.0")
+    assert not (tmp_path / "b.mcap").exists()
+
+
 def test_typer_usage_errors_are_one_line(tmp_path):
     res = walkerslam("simulate", "-o", tmp_path / "t.mcap", "--seed", "abc")
     assert_one_line_error(res, "--seed", "see walkerslam simulate --help")

@@ -6,6 +6,7 @@ from experiments.metrics import (
     ate,
     braking_impulse,
     distance_to_outlines,
+    heading_errors,
     map_scores,
     rpe,
 )
@@ -43,6 +44,20 @@ def test_alignment_recovers_rotation():
     r = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
     r_est, t_est = align_se2(src, src @ r.T + [1, 2])
     assert np.allclose(r_est, r) and np.allclose(t_est, [1, 2])
+
+
+def test_heading_errors_wrap_and_grow_with_a_known_drift():
+    """A heading that drifts by 0.01 rad/s from a true one that wraps past ±π."""
+    t = np.linspace(0, 20, 401)
+    true = np.remainder(3.0 + 0.2 * t + np.pi, 2 * np.pi) - np.pi
+    gt = Trajectory(t, np.column_stack([t, 0 * t, true]))
+    est = Trajectory(
+        t, np.column_stack([t, 0 * t, np.remainder(true - 0.01 * t + np.pi, 2 * np.pi) - np.pi])
+    )
+    m = heading_errors(est, gt)
+    assert m["final_heading_error_deg"] == pytest.approx(np.degrees(0.2), abs=1e-9)
+    assert m["heading_error_max_deg"] == pytest.approx(np.degrees(0.2), abs=1e-9)
+    assert m["heading_error_median_deg"] == pytest.approx(np.degrees(0.1), abs=1e-9)
 
 
 def test_rpe_zero_for_rigid_copy_and_positive_for_drift():
@@ -101,3 +116,13 @@ def test_relation_errors_zero_for_exact_and_known_for_scaled():
     expected = 0.1 * np.hypot(*(gt.poses[j, :2] - gt.poses[i, :2]).T).mean()
     assert out["relations_trans_mean_m"] == pytest.approx(expected, rel=1e-6)
     assert out["relations_rot_mean_deg"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_slip_errors_against_the_true_effective_k():
+    from experiments.metrics import slip_errors
+
+    cov = np.diag([0.01**2, 0.02**2])
+    out = slip_errors(np.array([0.11, 0.05]), cov, {"k_effective": [0.1, None]})
+    assert out["k"] == pytest.approx([0.11, 0.05]) and out["k_sigma"] == pytest.approx([0.01, 0.02])
+    assert out["relative_error"][0] == pytest.approx(0.1) and out["relative_error"][1] is None
+    assert "relative_error" not in slip_errors(np.zeros(2), cov, None)

@@ -15,7 +15,7 @@ from hardware.arduino import ArduinoBoard, BoardConfig, BoardError
 from hardware.board_emulator import BoardEmulator
 from hardware.calibration import WalkerCalibration
 from hardware.clock import HostClock
-from hardware.messages import BrakeCommand, DeviceEvent, EncoderTicks
+from hardware.messages import BrakeCommand, DeviceEvent, EncoderTicks, GyroRate
 
 CAL = WalkerCalibration()
 
@@ -219,3 +219,30 @@ def test_firmware_with_other_counts_per_revolution_is_refused(tmp_path):
 def test_resend_rate_must_feed_the_board_timeout():
     with pytest.raises(ValueError, match="resend_hz"):
         BoardConfig(resend_hz=3.0)
+
+
+def test_an_emulated_imu_gives_gyro_rates_before_their_ticks(tmp_path):
+    with BoardEmulator(tmp_path / "tty", imu=True) as emu:
+        emu.set_gyro_rate(-0.75)
+        run = Running(emu.port, gyro_sign=-1)  # an IMU mounted upside down
+        assert run.handshake.gyro_lsb_per_10dps == 1310
+        wait_for(lambda: sum(isinstance(m, GyroRate) for m in run.msgs) >= 20, what="gyro")
+        run.close()
+    msgs = run.msgs
+    pairs = [(a, b) for a, b in itertools.pairwise(msgs) if isinstance(a, GyroRate)]
+    assert len(pairs) >= 20
+    for gyro, ticks in pairs:
+        assert isinstance(ticks, EncoderTicks) and gyro.t == ticks.t
+        assert gyro.rate_rad_s == pytest.approx(0.75, abs=1.4e-4)  # sign flipped, 1 LSB
+    connected = run.events("connected")[0].detail
+    assert "a gyro" in connected
+
+
+def test_a_board_without_an_imu_gives_no_gyro_rates(emulator):
+    run = Running(emulator.port)
+    assert run.handshake.gyro_lsb_per_10dps is None
+    wait_for(lambda: len(run.ticks()) >= 10, what="ticks")
+    run.close()
+    assert not any(isinstance(m, GyroRate) for m in run.msgs)
+    with pytest.raises(ValueError, match="gyro_sign"):
+        BoardConfig(gyro_sign=0)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
 from hardware import board_protocol as bp
@@ -25,6 +27,9 @@ def test_crc8_check_value_and_single_bit_errors():
         bp.Tick(2**32 - 1, 2**32 - 1, -(2**31), 2**31 - 1, 255, 17, 3),
         bp.Status(1, 2, 3, 4, 5, 6, 7, 2**32 - 1),
         bp.Handshake(1, "0.1.0-rc1", 100, 256, 9),
+        bp.Tick(5, 50000, 1, 2, 0, 0, 0, gyro_z=-32768),
+        bp.Tick(2**32 - 1, 2**32 - 1, -(2**31), 2**31 - 1, 255, 17, 3, gyro_z=32767),
+        bp.Handshake(1, "1.0.0", 100, 256, 1, gyro_lsb_per_10dps=1310),
     ],
 )
 def test_board_lines_round_trip(msg):
@@ -96,3 +101,26 @@ def test_splitter_partial_lines_overflow_and_chunks():
     assert len(out) == 2 and isinstance(out[0], bp.LineError) and out[0].kind == "overflow"
     assert bp.parse_board_line(out[1]) == bp.Tick(3, 30000, 1, 2, 0, 0, 0)
     assert sp.feed(b"\n\r\n") == []  # empty lines are not lines
+
+
+def test_the_gyro_fields_are_optional_and_checked():
+    """A board without an IMU sends the lines as before (no gyro); a gyro value outside
+    int16, or a zero scale, is malformed; fields after those known are ignored."""
+    plain = bp.parse_board_line(bp.encode("T", 1, 10000, 3, 4, 0, 0, 1))
+    assert plain == bp.Tick(1, 10000, 3, 4, 0, 0, 1) and plain.gyro_z is None
+    assert bp.parse_board_line(bp.encode("H", 1, "1.0.0", 100, 256, 1)).gyro_lsb_per_10dps is None
+    assert bp.parse_board_line(bp.encode("T", 1, 2, 3, 4, 0, 0, 0, -7, 99)).gyro_z == -7
+    for bad in (bp.encode("T", 1, 2, 3, 4, 0, 0, 0, 32768), bp.encode("H", 1, "1", 100, 256, 1, 0)):
+        with pytest.raises(bp.LineError) as e:
+            bp.parse_board_line(bad)
+        assert e.value.kind == "malformed"
+
+
+def test_gyro_scale_conversions():
+    """131 LSB per °/s: 1310 per 10 °/s; rates round to the nearest LSB and saturate."""
+    assert bp.gyro_raw(math.radians(10.0)) == 1310
+    assert bp.gyro_raw(math.radians(-1.0) / 131 * 2.4) == -2
+    assert bp.gyro_rate(1310, 1310) == pytest.approx(math.radians(10.0), rel=1e-15)
+    assert (bp.gyro_raw(math.radians(400.0)), bp.gyro_raw(-10.0)) == (32767, -32768)
+    for raw in (-32768, -1, 0, 1, 4321, 32767):
+        assert bp.gyro_raw(bp.gyro_rate(raw, 1310)) == raw

@@ -44,6 +44,7 @@ from hardware.messages import (
     DepthFrame,
     EncoderTicks,
     GroundTruthPose,
+    GyroRate,
     LaserScan,
     RangeBearing,
     TagDetection,
@@ -169,6 +170,36 @@ def test_custom_topic_keeps_streams_apart(tmp_path: Path) -> None:
     assert [type(m) for m in replay(path, topics=["/d2"])] == [DepthFrame]
 
 
+def test_gyro_rates_round_trip_exactly_on_their_json_channel(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    rates = [0.0, -0.0, 1 / 3, -2.5e-7, math.pi, math.inf, -math.inf, math.nan]
+    rates += list(rng.normal(0.0, 0.5, 50))
+    msgs = [GyroRate(0.01 * i + 1e-9 / 3, r) for i, r in enumerate(rates)]
+    msgs.insert(3, EncoderTicks(0.025, 4, -5))  # interleaved with another stream
+    path = tmp_path / "gyro.mcap"
+    write_log(path, msgs)
+    log = read_log(path)
+    assert log.topics == {"/imu/gyro": GyroRate, "/encoders": EncoderTicks}
+    got = list(log.messages())
+    assert len(got) == len(msgs) == 59
+    for a, b in zip(msgs, got, strict=True):
+        assert_same(a, b)
+    with open(path, "rb") as f:  # a plain MCAP reader sees the JSON channel and schema
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        (channel,) = [c for c in summary.channels.values() if c.topic == "/imu/gyro"]
+        schema = summary.schemas[channel.schema_id]
+        assert (schema.name, schema.encoding, channel.message_encoding) == (
+            "walker.GyroRate",
+            "jsonschema",
+            "json",
+        )
+        assert json.loads(schema.data)["required"] == ["t", "rate_rad_s"]
+        first = next(m for _, c, m in reader.iter_messages(topics=["/imu/gyro"]))
+        assert json.loads(first.data) == {"t": 1e-9 / 3, "rate_rad_s": 0.0}
+
+
 def test_metadata_calibration_and_attachments_round_trip(tmp_path: Path) -> None:
     cal = WalkerCalibration(
         wheel_diameter_m=0.204, track_m=0.68, depth_mount=Mount(0.4, 0.01, 0.5, pitch=0.1)
@@ -189,6 +220,25 @@ def test_metadata_calibration_and_attachments_round_trip(tmp_path: Path) -> None
         records = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
     assert set(records) == {"calibration", "config", "world"}
     assert json.loads(records["calibration"]["json"]) == json.loads(json.dumps(cal.to_dict()))
+
+
+def test_metadata_written_at_the_end_round_trips(tmp_path: Path) -> None:
+    """A record added after the messages (what a run knows only when it ends) reads back
+    with the rest; bad input is refused as at the start; a closed writer takes none."""
+    path = tmp_path / "late.mcap"
+    with LogWriter(path, WalkerCalibration(), {"config": {"a": 1}}) as w:
+        for k in range(60):  # past a chunk boundary (0.5 s)
+            w.write(EncoderTicks(0.02 * k, k, k))
+        w.add_metadata("slip", {"k_effective": [0.1, None]})
+        with pytest.raises(ValueError, match="reserved"):
+            w.add_metadata("calibration", {})
+        with pytest.raises(ValueError, match="strict JSON"):
+            w.add_metadata("x", {"v": math.inf})
+    with pytest.raises(ValueError, match="closed"):
+        w.add_metadata("late", {})
+    log = read_log(path)
+    assert log.metadata == {"config": {"a": 1}, "slip": {"k_effective": [0.1, None]}}
+    assert log.message_count == 60
 
 
 def test_writer_rejects_bad_input(tmp_path: Path) -> None:

@@ -4,6 +4,7 @@ import numpy as np
 
 from experiments.pipeline import Pipeline
 from hardware.log import read_log
+from hardware.messages import EncoderTicks
 from slam.base import create
 
 
@@ -28,3 +29,14 @@ def replay(log, name):
     pipe = Pipeline(loc, trial.calibration, reference_map=False)
     pipe.run(trial.messages())
     return loc, pipe, trial
+
+
+def wandering_ticks(rng, steps, left, right, dt=0.05):
+    """Encoder messages at dt·k for k in `steps`, each wheel going on from its count by a
+    random 0–19 (left) and 0–29 (right) counts: a walker that wanders and turns."""
+    out = []
+    for k in steps:
+        left += int(rng.integers(0, 20))
+        right += int(rng.integers(0, 30))
+        out.append(EncoderTicks(dt * k, left, right))
+    return out

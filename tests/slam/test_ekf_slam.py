@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from helpers import replay
+from helpers import replay, wandering_ticks
 
 from experiments.metrics import ate
 from hardware.calibration import WalkerCalibration
@@ -125,12 +125,7 @@ def test_deferred_cross_covariance_equals_the_full_prediction():
     x, p = ekf.state()
     odo = OdometryModel(cal, ekf.config.noise)
     odo.increment(EncoderTicks(0.45, 180, 225))
-    rng = np.random.default_rng(5)
-    left, right = 180, 225
-    for k in range(10, 50):
-        left += int(rng.integers(0, 20))
-        right += int(rng.integers(0, 30))
-        msg = EncoderTicks(0.05 * k, left, right)
+    for msg in wandering_ticks(np.random.default_rng(5), range(10, 50), 180, 225):
         ekf.process(msg)
         inc = odo.increment(msg)
         f, g = increment_jacobians(x[2], inc.ds, inc.dtheta)

@@ -2,7 +2,7 @@
  * board_sim.c - runs the walker board firmware on a simulated ATmega328P (simavr 1.6)
  * with the board's surroundings: a serial port, two quadrature encoders, two brakes.
  *
- *   board_sim [-s SPEED] [-t] [-r EDGE_RATE_HZ] -l LINK FIRMWARE.elf
+ *   board_sim [-s SPEED] [-t] [-r EDGE_RATE_HZ] [-i] -l LINK FIRMWARE.elf
  *
  *   -l LINK   the path of a symlink to the pseudo-terminal bridged to UART0 (what a
  *             serial driver opens, as it would /dev/ttyACM0); an old symlink there is
@@ -12,6 +12,7 @@
  *             never catches up by more than 100 ms in a burst.
  *   -t        start with the `tx` events on
  *   -r HZ     the default maximum edge rate of `goto` (default 10000 edges/s/wheel)
+ *   -i        an MPU-6050 IMU on the I2C bus (TWI) at address 0x68
  *
  * What it models:
  *   - UART0 <-> a pty (raw, no echo). Bytes from the host are handed to the AVR's
@@ -32,6 +33,14 @@
  *     timed to measure the duty over the last PWM period. While a compare output
  *     is disconnected the pin follows PORTB (simavr leaves it where the timer left
  *     it), and after a reset the pins are inputs pulled low (the driver's pull-down).
+ *   - IMU (with -i): an InvenSense MPU-6050 at 0x68 on the AVR's TWI, as simavr's TWI
+ *     master raises the transaction: a START with our address is acknowledged, WRITE
+ *     bytes set the register pointer (the first) or a register (the pointer then
+ *     advances), READ bytes return the register at the pointer (which advances), a
+ *     STOP ends it. WHO_AM_I (0x75) reads 0x68; PWR_MGMT_1 (0x6B) starts at 0x40
+ *     (asleep); written registers keep their values (an MCU reset does not reset the
+ *     IMU). GYRO_ZOUT_H/L (0x47/0x48) give the `gyro` value (int16; 0 while asleep);
+ *     reading 0x47 latches the pair. Without -i nobody answers on the bus.
  *
  * Control channel: one command per line on stdin; exactly one reply line per command
  * on stdout, in order: "OK [fields]" or "ERR <message>". Asynchronous events are
@@ -70,6 +79,10 @@
  *                               unplugged or while nobody read the port)
  *   inject <hex>                OK <n>; n bytes to the host as if the AVR had sent them
  *                               (garbage on the line; mid-line if the AVR is sending)
+ *   gyro <raw>                  OK; the IMU's z rate from now on, in LSB (-32768..32767)
+ *   imu                         OK <pwr_mgmt_1> <smplrt_div> <config> <gyro_config>
+ *                                  <gz_reads>  (the registers the firmware set; reads
+ *                               of GYRO_ZOUT_H so far)
  *   quit                        OK, then exit (also on EOF of stdin and SIGTERM)
  *
  *   E <ns> ready <link> <slave>     once, before any reply
@@ -111,6 +124,7 @@
 #include <unistd.h>
 
 #include "avr_ioport.h"
+#include "avr_twi.h"
 #include "avr_uart.h"
 #include "sim_avr.h"
 #include "sim_elf.h"
@@ -576,6 +590,90 @@ static void alarm_arm(alarm_t *al)
     avr_cycle_timer_register(avr, al->cycle > now ? al->cycle - now : 1, alarm_timer, al);
 }
 
+/* ------------------------------------------------------------------ IMU -- */
+
+#define IMU_ADDR 0x68
+#define MPU_GYRO_ZOUT_H 0x47
+#define MPU_GYRO_ZOUT_L 0x48
+#define MPU_SMPLRT_DIV 0x19
+#define MPU_CONFIG 0x1A
+#define MPU_GYRO_CONFIG 0x1B
+#define MPU_PWR_MGMT_1 0x6B
+#define MPU_WHO_AM_I 0x75
+#define MPU_SLEEP 0x40
+
+static struct {
+    int present;
+    avr_irq_t *to_avr;
+    uint8_t reg[128];
+    uint8_t ptr, selected, addressed; /* addressed: the register pointer was written */
+    int16_t gz;
+    uint8_t gz_low; /* latched with the high byte */
+    uint64_t gz_reads;
+} imu;
+
+static uint8_t imu_load(uint8_t r)
+{
+    int awake = !(imu.reg[MPU_PWR_MGMT_1] & MPU_SLEEP);
+    uint16_t gz = awake ? (uint16_t)imu.gz : 0;
+    if (r == MPU_GYRO_ZOUT_H) {
+        imu.gz_low = (uint8_t)gz;
+        imu.gz_reads++;
+        return (uint8_t)(gz >> 8);
+    }
+    return r == MPU_GYRO_ZOUT_L ? imu.gz_low : imu.reg[r & 0x7F];
+}
+
+static void imu_ack(uint8_t addr)
+{
+    avr_raise_irq(imu.to_avr, avr_twi_irq_msg(TWI_COND_ACK, addr, 1));
+}
+
+/* A TWI condition or byte the AVR (the bus master) put on the bus. */
+static void twi_notify(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    avr_twi_msg_irq_t v;
+    v.u.v = value;
+    uint8_t msg = v.u.twi.msg, addr = v.u.twi.addr, data = v.u.twi.data;
+    if (msg & TWI_COND_STOP)
+        imu.selected = 0;
+    if (msg & TWI_COND_START) {
+        imu.selected = (addr >> 1) == IMU_ADDR;
+        imu.addressed = 0;
+        if (imu.selected)
+            imu_ack(addr);
+        return;
+    }
+    if (!imu.selected)
+        return;
+    if (msg & TWI_COND_WRITE) {
+        imu_ack(addr);
+        if (!imu.addressed) {
+            imu.ptr = data & 0x7F;
+            imu.addressed = 1;
+        } else if (imu.ptr != MPU_WHO_AM_I) {
+            imu.reg[imu.ptr] = data;
+            imu.ptr = (imu.ptr + 1) & 0x7F;
+        }
+    } else if (msg & TWI_COND_READ) {
+        uint8_t b = imu_load(imu.ptr);
+        imu.ptr = (imu.ptr + 1) & 0x7F;
+        avr_raise_irq(imu.to_avr, avr_twi_irq_msg(TWI_COND_READ, addr, b));
+    }
+}
+
+static void imu_attach(void)
+{
+    imu.present = 1;
+    imu.reg[MPU_WHO_AM_I] = IMU_ADDR;
+    imu.reg[MPU_PWR_MGMT_1] = MPU_SLEEP;
+    imu.to_avr = avr_io_getirq(avr, AVR_IOCTL_TWI_GETIRQ(0), TWI_IRQ_INPUT);
+    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_TWI_GETIRQ(0), TWI_IRQ_OUTPUT),
+                            twi_notify, NULL);
+}
+
 /* ---------------------------------------------------------------- reset -- */
 
 static void (*core_reset)(avr_t *);
@@ -767,6 +865,25 @@ static void command(char *line)
         out("OK %" PRIu64 " %" PRIu64 " %" PRIu64 " %" PRIu64 " %" PRIu64 " %" PRIu64 "\n",
             cycles_to_ns(avr->cycle), wall_ns() - wall_start, rx_bytes, tx_bytes, rx_dropped,
             tx_dropped);
+    } else if (!strcmp(cmd, "gyro") && n == 2) {
+        long raw = strtol(a1, &end, 10);
+        if (!imu.present) {
+            out("ERR no IMU: start board_sim with -i\n");
+            return;
+        }
+        if (*end || raw < -32768 || raw > 32767) {
+            out("ERR usage: gyro RAW (-32768..32767)\n");
+            return;
+        }
+        imu.gz = (int16_t)raw;
+        out("OK\n");
+    } else if (!strcmp(cmd, "imu") && n == 1) {
+        if (!imu.present) {
+            out("ERR no IMU: start board_sim with -i\n");
+            return;
+        }
+        out("OK %u %u %u %u %" PRIu64 "\n", imu.reg[MPU_PWR_MGMT_1], imu.reg[MPU_SMPLRT_DIV],
+            imu.reg[MPU_CONFIG], imu.reg[MPU_GYRO_CONFIG], imu.gz_reads);
     } else if (!strcmp(cmd, "quit") && n == 1) {
         out("OK\n");
         quitting = 1;
@@ -812,14 +929,15 @@ static void on_signal(int sig)
 
 static void usage(void)
 {
-    fprintf(stderr, "usage: board_sim [-s SPEED] [-t] [-r EDGE_RATE_HZ] -l LINK FIRMWARE.elf\n");
+    fprintf(stderr,
+            "usage: board_sim [-s SPEED] [-t] [-r EDGE_RATE_HZ] [-i] -l LINK FIRMWARE.elf\n");
     exit(2);
 }
 
 int main(int argc, char **argv)
 {
-    int opt;
-    while ((opt = getopt(argc, argv, "s:tr:l:")) != -1) {
+    int opt, with_imu = 0;
+    while ((opt = getopt(argc, argv, "s:tr:il:")) != -1) {
         switch (opt) {
         case 's':
             speed = strtod(optarg, NULL);
@@ -832,6 +950,9 @@ int main(int argc, char **argv)
             break;
         case 'l':
             link_path = optarg;
+            break;
+        case 'i':
+            with_imu = 1;
             break;
         default:
             usage();
@@ -887,6 +1008,8 @@ int main(int argc, char **argv)
         meters[i].irq = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('B'), i + 1);
         avr_irq_register_notify(meters[i].irq, pin_notify, &meters[i]);
     }
+    if (with_imu)
+        imu_attach();
 
     if (pty_open() < 0) {
         fprintf(stderr, "board_sim: cannot make the pty at %s: %s\n", link_path, strerror(errno));

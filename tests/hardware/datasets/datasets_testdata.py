@@ -235,3 +235,58 @@ def write_victoria_park(folder: Path, gz: bool = True) -> Path:
         gz,
     )
     return folder
+
+
+# --- MTRX5700 ------------------------------------------------------------------------
+
+MTRX_T0_S = 1115116000
+MTRX_SCALE = 0.97  # the walker moves this much of what its velocities say
+MTRX_START = (0.3, -0.2, 0.4)
+MTRX_BEACONS = [(-2.531, -9.854), (3.83, -5.523), (13.761, 9.761)]
+
+
+def _mtrx_stamp(t: float) -> str:
+    us = round(t * 1e6)
+    return f"{MTRX_T0_S + us // 1_000_000} {us % 1_000_000}"
+
+
+def mtrx_truth(t: np.ndarray, v: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """The synthetic walker's true poses: exact arcs of MTRX_SCALE·(v, ω) from MTRX_START
+    (integrated here with slam.motion, independently of the importer's own code)."""
+    from slam.motion import apply_increment
+
+    poses = [np.array(MTRX_START, dtype=float)]
+    for k in range(len(t) - 1):
+        dt = t[k + 1] - t[k]
+        poses.append(apply_increment(poses[-1], MTRX_SCALE * v[k] * dt, MTRX_SCALE * w[k] * dt))
+    return np.array(poses)
+
+
+def write_mtrx5700(folder: Path, seed: int = 0, rows: int = 900, gz: bool = False) -> Path:
+    """A small MTRX5700 folder as the originals are (CRLF, `%` headers): velocity rows every
+    0.1 s, every 8th with a fix (true + N(0, 0.5 m)), every 10th with a compass heading
+    (true heading in [0, 2π) + N(0, 0.25 rad)), three beacons; seeded."""
+    rng = np.random.default_rng(seed)
+    t = 0.462817 + 0.1 * np.arange(rows)
+    v = np.round(0.3 + 0.1 * np.sin(t / 5.0), 6)
+    w = np.round(0.25 * np.sin(t / 7.0), 6)
+    truth = mtrx_truth(t, v, w)
+    ext = ".gz" if gz else ""
+    head = "% {name}\r\n% \r\n% simulated test data\r\n%\r\n% columns\r\n"
+    vel = [f"{_mtrx_stamp(ti)} {vi:.6f} {wi:.6f}\r\n" for ti, vi, wi in zip(t, v, w, strict=True)]
+    fixes, headings = [], []
+    for k in range(0, rows, 8):
+        x, y = truth[k, :2] + rng.normal(0.0, 0.5, 2)
+        fixes.append(f"{_mtrx_stamp(t[k])} {x:.6f} {y:.6f}\r\n")
+    for k in range(0, rows, 10):
+        heading = truth[k, 2] % (2 * math.pi) + rng.normal(0.0, 0.25)
+        headings.append(f"{_mtrx_stamp(t[k])} {heading:.6f}\r\n")
+    beacons = [f"{x:.3f} {y:.3f}\r\n" for x, y in MTRX_BEACONS]
+    for name, lines in (
+        ("velocityObs.txt", vel),
+        ("positionObs.txt", fixes),
+        ("compassObs.txt", headings),
+        ("laserFeatures.txt", beacons),
+    ):
+        write_text(folder / (name + ext), head.format(name=name) + "".join(lines), gz)
+    return folder

@@ -12,6 +12,7 @@ from datasets_testdata import (
     assert_same_messages,
     write_carmen,
     write_mrclam,
+    write_mtrx5700,
     write_text,
     write_victoria_park,
 )
@@ -30,11 +31,11 @@ from hardware.messages import GroundTruthPose, LaserScan, RangeBearing, Velocity
 
 
 def test_formats_are_registered():
-    assert available_formats() == ["carmen", "mrclam", "victoria-park"]
+    assert available_formats() == ["carmen", "mrclam", "mtrx5700", "victoria-park"]
 
 
 def test_unknown_format_lists_the_valid_ones(tmp_path):
-    with pytest.raises(UnknownNameError, match="carmen, mrclam, victoria-park"):
+    with pytest.raises(UnknownNameError, match="carmen, mrclam, mtrx5700, victoria-park"):
         open_dataset("kitti", tmp_path)
 
 
@@ -112,10 +113,12 @@ def _synthetic(kind: str, tmp_path):
         return open_dataset("mrclam", write_mrclam(tmp_path / "m"), robot=1)
     if kind == "carmen":
         return open_dataset("carmen", write_carmen(tmp_path / "c.log", gz=True))
+    if kind == "mtrx5700":
+        return open_dataset("mtrx5700", write_mtrx5700(tmp_path / "x", rows=120))
     return open_dataset("victoria-park", write_victoria_park(tmp_path / "v"))
 
 
-@pytest.mark.parametrize("kind", ["mrclam", "carmen", "victoria-park"])
+@pytest.mark.parametrize("kind", ["mrclam", "carmen", "victoria-park", "mtrx5700"])
 def test_import_to_log_round_trip(tmp_path, kind):
     ds = _synthetic(kind, tmp_path)
     out = tmp_path / "out" / "trial.mcap"

@@ -56,3 +56,35 @@ def test_broad_phase_changes_nothing(monkeypatch):
 def test_bad_rates_are_rejected():
     with pytest.raises(ValueError, match="must divide"):
         SimConfig(depth_rate_hz=7)
+
+
+def test_unequal_true_wheels_count_apart_and_the_default_is_equal():
+    """wheel_diameter_ratio_error makes the true right wheel larger by that ratio (the
+    mean kept): pushed straight, it turns fewer times; 0 gives both exactly the mean."""
+    from hardware.sim.user import ConstantPush
+
+    d = SimConfig().walker.wheel_diameter_m
+    assert SimConfig().true_wheel_diameters_m() == (d, d)
+    cfg = SimConfig(seed=2, wheel_diameter_ratio_error=0.01, surface=0.0)
+    left, right = cfg.true_wheel_diameters_m()
+    assert right / left == pytest.approx(1.01, rel=1e-12)
+    assert (left + right) / 2 == pytest.approx(d, rel=1e-15)
+    assert cfg.calibration().wheel_diameter_ratio == 1.0  # the software does not know
+    sim = Simulator(load_world("corner"), cfg, user=ConstantPush(20.0, 20.0))
+    msgs = sim.poll(4.0)
+    ticks, gt = [m for m in msgs if isinstance(m, EncoderTicks)], truth(msgs)
+    assert abs(gt[-1, 3]) < 1e-9  # the walker itself went straight
+    assert ticks[-1].left / ticks[-1].right == pytest.approx(1.01, abs=2 / ticks[-1].right)
+    with pytest.raises(ValueError, match="wheel_diameter_ratio_error"):
+        SimConfig(wheel_diameter_ratio_error=-1.0)
+
+
+def test_a_sighted_user_knows_where_the_walker_is():
+    """The `umbmark` course is walked by a sighted helper following tape: their sense of
+    position is the truth, however far they walk."""
+    sim = Simulator(load_world("umbmark"), SimConfig(seed=3, surface="clean"))
+    assert sim.user.p.sighted and sim.user.p.lookahead_m == 0.6
+    sim.poll(30.0)
+    assert sim.user.progress_m > 10.0  # round corners
+    sim.user.forces(sim.state, sim.dt)  # what the user does at each step: feel, push
+    assert np.array_equal(sim.user.belief, sim.pose())

@@ -60,8 +60,8 @@ def test_no_profile_is_exactly_the_old_user():
     cfg = SimConfig(seed=3)
     a = truth(Simulator(world, cfg), 15.0)
     ref = Simulator(world, cfg)
-    streams = np.random.SeedSequence(3).spawn(5)
-    rng_user, rng_vision = (np.random.default_rng(streams[i]) for i in (1, 4))
+    streams = np.random.SeedSequence(3).spawn(6)
+    rng_user, rng_vision = (np.random.default_rng(streams[i]) for i in (1, 5))
     w = cfg.walker
     ref.user = RouteFollower(
         world.route, ref.state, w, cfg.user, rng_user, world, rng_vision, world.route

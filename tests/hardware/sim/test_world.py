@@ -394,3 +394,26 @@ def test_every_tag_is_seen_from_the_route(name: str) -> None:
         gaps = np.diff(np.concatenate([[0], with_tag, [along[-1]]]))
         assert gaps.max() < 2.5
         assert len(w.tags) >= 25
+
+
+def test_a_course_can_say_how_its_route_is_walked(tmp_path: Path) -> None:
+    """`user` sets UserParams fields for the course (the umbmark course's sighted helper);
+    it round-trips, and a wrong name or type names the file and the field."""
+    world = load_world("umbmark")
+    assert world.user["sighted"] is True and world.user["speed_mps"] == 0.5
+    assert World.from_dict(world.to_dict()).user == world.user
+    assert "user" not in load_world("corner").to_dict()  # other courses are unchanged
+    for user, needle in [
+        ({"sightd": True}, "unknown setting 'sightd'"),
+        ({"sighted": 1}, "'sighted' must be true or false"),
+        ({"speed_mps": True}, "'speed_mps' must be a finite number"),
+        ({"speed_mps": "fast"}, "'speed_mps' must be a finite number"),
+        ([1], "'user' must be an object"),
+    ]:
+        d = minimal_world()
+        d["user"] = user
+        f = tmp_path / "walked.json"
+        f.write_text(json.dumps(d))
+        with pytest.raises(ValueError, match=r"walked\.json") as e:
+            load_world(f)
+        assert needle in str(e.value) and "\n" not in str(e.value)
