@@ -733,7 +733,7 @@ def _list_mitigations(name: str | None) -> None:
             sets += [
                 f"map.hygiene.{k}={v}" for k, v in vars(m.hygiene).items() if v not in (None, False)
             ]
-        needs = [" or ".join(t.__name__ for t in m.needs)] if m.needs else []
+        needs = [" or ".join(t.__name__ for t in group) for group in m.needs]
         needs += ["--calibration FILE"] if m.needs_calibration else []
         needs += [f"a simulated {s}" for s in m.simulated]
         applies = "every localizer" if "*" in m.localizers else ", ".join(m.localizers)

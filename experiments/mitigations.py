@@ -24,6 +24,7 @@ from typing import Any
 
 from hardware.errors import ConfigError
 from hardware.messages import (
+    BrakeCommand,
     CompassHeading,
     DepthFrame,
     GyroRate,
@@ -45,7 +46,8 @@ class Mitigation:
     localizers: {localizer name: {config field path: value}} — the localizers it applies
     to and the fields it sets on each; the key "*" (ALL) applies to every localizer.
     hygiene: the map hygiene it sets on the mapper (`mapping.hygiene`), if any.
-    needs: message types of which the source must hold at least one (empty: none).
+    needs: what the source must hold: groups of message types, at least one type of
+    every group (empty: nothing).
     needs_calibration: it needs a calibration file (`--calibration FILE`).
     simulated: what a simulated walker must carry for it ({SimConfig part: True}, e.g.
     "gyro"), switched on by simulate and the studies.
@@ -55,7 +57,7 @@ class Mitigation:
     summary: str
     localizers: Mapping[str, Mapping[str, Any]]
     hygiene: HygieneConfig | None = None
-    needs: tuple[type, ...] = ()
+    needs: tuple[tuple[type, ...], ...] = ()
     needs_calibration: bool = False
     simulated: tuple[str, ...] = ()
     notes: str = ""
@@ -136,8 +138,7 @@ def resolve(names: Iterable[str], localizer: str) -> Mitigated:
             settings[path], owner[path] = value, name
         if m.hygiene is not None:
             hygiene.update({k: v for k, v in vars(m.hygiene).items() if v not in (None, False)})
-        if m.needs:
-            needs.append((name, m.needs))
+        needs += [(name, group) for group in m.needs]
         if m.needs_calibration:
             calibration.append(name)
         simulated += [s for s in m.simulated if s not in simulated]
@@ -188,7 +189,7 @@ GYRO = Mitigation(
     "the turn of every odometry increment from a yaw-rate gyro, its bias estimated "
     "online (slam.gyro)",
     {ALL: {"noise.gyro.enabled": True}},
-    needs=(GyroRate,),
+    needs=((GyroRate,),),
     simulated=("gyro",),
 )
 
@@ -199,7 +200,7 @@ ABSOLUTE_FIX = Mitigation(
         name: {"absolute.use_compass": True, "absolute.use_position": True}
         for name in ("ekf-slam", "particle-filter", "gtsam", "alpha-blend")
     },
-    needs=(CompassHeading, PositionFix),
+    needs=((CompassHeading, PositionFix),),
 )
 
 SCAN_CORRECTION = Mitigation(
@@ -210,7 +211,7 @@ SCAN_CORRECTION = Mitigation(
         "particle-filter": {"use_scans": True},
         "grid-rbpf": {},
     },
-    needs=(DepthFrame, LaserScan),
+    needs=((DepthFrame, LaserScan),),
     notes="grid-rbpf matches every frame to its particles' maps already",
 )
 
@@ -229,7 +230,23 @@ CALIBRATION = Mitigation(
     needs_calibration=True,
 )
 
-SLIP_NEEDS = (TagDetections, RangeBearing, DepthFrame, LaserScan)
+SLIP_ESTIMATION = Mitigation(
+    "slip-estimation",
+    "each rear wheel's slip per unit brake level as estimated state, learnt from the tag "
+    "observations, correcting the odometry between sightings (slam.slip)",
+    {
+        name: {
+            "slip.estimate": True,
+            "align_observations": True,
+            "noise.brake_delay_s": 0.03,
+            "noise.wheel_m": 1e-4,
+        }
+        for name in ("ekf-slam", "gtsam", "fastslam")
+    },
+    needs=((BrakeCommand,), (TagDetections, RangeBearing)),
+    notes="noise.wheel_m 1e-4: the encoders' own noise once slip is modelled (a slipping "
+    "trial proposes more, to cover slip); brake_delay_s: the loop's latency",
+)
 
 
 def _spec(m: Mitigation) -> Spec[Mitigation]:
@@ -238,6 +255,7 @@ def _spec(m: Mitigation) -> Spec[Mitigation]:
 
 BRAKE_AWARE_NOISE_SPEC = _spec(BRAKE_AWARE_NOISE)
 GYRO_SPEC = _spec(GYRO)
+SLIP_ESTIMATION_SPEC = _spec(SLIP_ESTIMATION)
 ABSOLUTE_FIX_SPEC = _spec(ABSOLUTE_FIX)
 SCAN_CORRECTION_SPEC = _spec(SCAN_CORRECTION)
 MAP_HYGIENE_SPEC = _spec(MAP_HYGIENE)

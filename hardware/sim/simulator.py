@@ -222,8 +222,13 @@ class Simulator:
             if config.user_profile is not None:
                 params = config.user_profile.apply(params)
                 route = config.user_profile.walk_route(route)
+            sight = (
+                world.footprint_polygons(params.vision.min_height_m, COLLISION_BAND_M[1])
+                if params.vision is not None
+                else None
+            )
             user = RouteFollower(
-                route, self.state, w, params, rng_user, world, rng_vision, world.route
+                route, self.state, w, params, rng_user, sight, rng_vision, world.route
             )
         self.user = user
         self.depth_camera = SimDepthCamera(world, self.calibration, config.depth, rng_depth)

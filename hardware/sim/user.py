@@ -23,8 +23,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from hardware.sim.dynamics import WalkerParams, WalkerState
-from hardware.sim.user_vision import GogglesVision, VisionParams, choose_offset, route_coordinates
-from hardware.sim.world import World
+from hardware.sim.user_vision import (
+    Footprints,
+    GogglesVision,
+    VisionParams,
+    choose_offset,
+    route_coordinates,
+)
 
 
 @dataclass(frozen=True)
@@ -210,7 +215,9 @@ class ConstantPush:
 
 class RouteFollower:
     """A user who walks a route they know, on their own sense of where they are, looking
-    through vision-impairment goggles (see the module docstring)."""
+    through vision-impairment goggles (see the module docstring). sight: what they can
+    see (`user_vision.GogglesVision`; None, or params.vision None: nothing);
+    course_route: the route whose bends they slow for (default `route`)."""
 
     def __init__(
         self,
@@ -219,7 +226,7 @@ class RouteFollower:
         walker: WalkerParams,
         params: UserParams,
         rng: np.random.Generator,
-        world: World | None = None,
+        sight: Footprints | None = None,
         vision_rng: np.random.Generator | None = None,
         course_route: np.ndarray | None = None,
     ) -> None:
@@ -260,8 +267,8 @@ class RouteFollower:
         self._offset = 0.0  # the offset across the route they walk at (+ = left)
         self._free = math.inf  # free distance ahead of the frame, as they see it
         self.vision = (
-            GogglesVision(world, params.vision, vision_rng or np.random.default_rng(0))
-            if world is not None and params.vision is not None
+            GogglesVision(sight, params.vision, vision_rng or np.random.default_rng(0))
+            if sight is not None and params.vision is not None
             else None
         )
 

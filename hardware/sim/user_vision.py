@@ -45,11 +45,10 @@ and in `VisionParams`:
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-
-from hardware.sim.world import COLLISION_BAND_M, World
 
 
 @dataclass(frozen=True)
@@ -95,19 +94,20 @@ class VisionParams:
         return self.perceived_half_width_m * (1.0 + 2.0 * self.margin_frac)
 
 
-def _edges(world: World, min_height_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Start points, direction vectors and owning obstacle (index into world.obstacles)
-    of every footprint edge of the boxes that reach from min_height_m into the
-    collision band."""
-    footprints = world.footprint_polygons(min_height_m, COLLISION_BAND_M[1])
+Footprints = Sequence[tuple[str, np.ndarray]]  # (obstacle name, 4×2 corners) per box
+
+
+def _edges(footprints: Footprints) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Start points, direction vectors and owning obstacle (an index per distinct name)
+    of every footprint edge, and the number of obstacles."""
     if not footprints:
-        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=int)
-    index = {o.name: i for i, o in enumerate(world.obstacles)}
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=int), 0
+    index = {n: i for i, n in enumerate(dict.fromkeys(n for n, _ in footprints))}
     polys = np.array([p for _, p in footprints], dtype=float)
     owner = np.repeat([index[n] for n, _ in footprints], 4)
     a = polys.reshape(-1, 2)
     b = np.roll(polys, -1, axis=1).reshape(-1, 2)
-    return a, b - a, owner
+    return a, b - a, owner, len(index)
 
 
 def cast_rays(
@@ -132,15 +132,19 @@ def cast_rays(
 
 
 class GogglesVision:
-    """Glimpses of the world through the goggles, remembered in the walker's frame."""
+    """Glimpses of the world through the goggles, remembered in the walker's frame.
 
-    def __init__(self, world: World, params: VisionParams, rng: np.random.Generator) -> None:
+    footprints: what can be seen, (obstacle name, 4×2 corners) of every box reaching
+    above params.min_height_m into the walker's height (`World.footprint_polygons`)."""
+
+    def __init__(
+        self, footprints: Footprints, params: VisionParams, rng: np.random.Generator
+    ) -> None:
         self.p = params
         self.rng = rng
-        self._starts, self._dirs, self._owner = _edges(world, params.min_height_m)
+        self._starts, self._dirs, self._owner, n_obstacles = _edges(footprints)
         # How this user misjudges each obstacle, for the whole trial: a factor on its
         # distance and an offset of its direction (module docstring).
-        n_obstacles = len(world.obstacles)
         self._range_factor = np.exp(params.range_sigma * rng.standard_normal(n_obstacles))
         self._bearing_offset = np.radians(params.bearing_sigma_deg) * rng.standard_normal(
             n_obstacles

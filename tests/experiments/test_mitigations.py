@@ -30,6 +30,7 @@ NAMES = (
     "gyro",
     "map-hygiene",
     "scan-correction",
+    "slip-estimation",
 )
 
 

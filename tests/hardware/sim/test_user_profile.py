@@ -8,7 +8,7 @@ import numpy as np
 from hardware.messages import GroundTruthPose
 from hardware.sim.simulator import SimConfig, Simulator
 from hardware.sim.user import RouteFollower, UserParams, UserProfile
-from hardware.sim.world import load_world
+from hardware.sim.world import COLLISION_BAND_M, load_world
 
 
 def truth(sim, seconds):
@@ -63,8 +63,9 @@ def test_no_profile_is_exactly_the_old_user():
     streams = np.random.SeedSequence(3).spawn(6)
     rng_user, rng_vision = (np.random.default_rng(streams[i]) for i in (1, 5))
     w = cfg.walker
+    sight = world.footprint_polygons(cfg.user.vision.min_height_m, COLLISION_BAND_M[1])
     ref.user = RouteFollower(
-        world.route, ref.state, w, cfg.user, rng_user, world, rng_vision, world.route
+        world.route, ref.state, w, cfg.user, rng_user, sight, rng_vision, world.route
     )
     assert np.array_equal(a, truth(ref, 15.0))
     assert asdict(cfg)["user_profile"] is None

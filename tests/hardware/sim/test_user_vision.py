@@ -12,7 +12,7 @@ from hardware.sim.user_vision import (
     choose_offset,
     route_coordinates,
 )
-from hardware.sim.world import World
+from hardware.sim.world import COLLISION_BAND_M, World
 
 
 def world_with(*boxes: dict) -> World:
@@ -30,6 +30,11 @@ def world_with(*boxes: dict) -> World:
 
 
 EXACT = VisionParams(range_sigma=0.0, bearing_sigma_deg=0.0)
+
+
+def sight(world: World, params: VisionParams = EXACT) -> list:
+    """What a user with `params` can see of `world`."""
+    return world.footprint_polygons(params.min_height_m, COLLISION_BAND_M[1])
 
 
 def test_cast_rays_hits_the_nearest_face() -> None:
@@ -51,7 +56,7 @@ def test_sees_what_is_ahead_in_the_window_above_the_floor_and_in_range() -> None
         {"name": "low", "x": 1.0, "y": 0.5, "sx": 0.2, "sy": 0.2, "height": 0.1},
         {"name": "far", "x": 0.0, "y": 4.0, "sx": 1.0, "sy": 0.2, "height": 0.9},
     )
-    vision = GogglesVision(world, EXACT, np.random.default_rng(0))
+    vision = GogglesVision(sight(world), EXACT, np.random.default_rng(0))
     assert vision.step(0.0, (0.0, 0.0, 0.0))
     pts = vision.points
     # Only the near face of "ahead" (x = 1.9 in the walker frame): the low box is not
@@ -60,14 +65,14 @@ def test_sees_what_is_ahead_in_the_window_above_the_floor_and_in_range() -> None
     np.testing.assert_allclose(pts[:, 0], 1.9, atol=1e-9)
     assert np.abs(pts[:, 1]).max() <= 0.5 + 1e-9
     # Facing the far box (4 m away, beyond the 3 m range) shows nothing new.
-    vision2 = GogglesVision(world, EXACT, np.random.default_rng(0))
+    vision2 = GogglesVision(sight(world), EXACT, np.random.default_rng(0))
     vision2.step(0.0, (0.0, 0.0, math.pi / 2))
     assert len(vision2.points) == 0
 
 
 def test_misjudged_distance_is_the_same_for_every_look_at_one_obstacle() -> None:
     world = world_with({"name": "a", "x": 2.0, "y": 0.0, "sx": 0.2, "sy": 1.0, "height": 0.9})
-    vision = GogglesVision(world, VisionParams(range_sigma=0.2), np.random.default_rng(1))
+    vision = GogglesVision(sight(world), VisionParams(range_sigma=0.2), np.random.default_rng(1))
     vision.step(0.0, (0.0, 0.0, 0.0))
     first = vision.points.copy()
     vision.step(0.2, (0.0, 0.0, 0.0))
@@ -81,7 +86,7 @@ def test_misjudged_distance_is_the_same_for_every_look_at_one_obstacle() -> None
 def test_memory_moves_with_the_walker_and_fades() -> None:
     world = world_with({"name": "a", "x": 2.0, "y": 0.0, "sx": 0.2, "sy": 0.2, "height": 0.9})
     params = VisionParams(range_sigma=0.0, bearing_sigma_deg=0.0, period_s=10.0)
-    vision = GogglesVision(world, params, np.random.default_rng(0))
+    vision = GogglesVision(sight(world, params), params, np.random.default_rng(0))
     vision.step(0.0, (0.0, 0.0, 0.0))
     i = int(np.argmin(np.abs(vision.points[:, 1])))
     near = vision.points[i].copy()
