@@ -213,9 +213,10 @@ def uses_gyro(config: object) -> bool:
 class Increment:
     """Motion from t − dt to t: arc length ds, turn dθ and their 2×2 covariance.
 
-    From encoder ticks also what a slip estimate needs (`slip_corrected`): wheels, each
-    wheel's encoder distance [m] (left, right) as counted, before any brake-aware
-    de-biasing; brake_level, each brake's commanded level in [0, 1] over the increment."""
+    Also what a slip estimate needs (`slip_corrected`): wheels, each wheel's distance [m]
+    (left, right) as counted by its encoder, before any brake-aware de-biasing (from
+    velocity odometry, the distances its (v, ω) stand for on the calibration's track);
+    brake_level, each brake's commanded level in [0, 1] over the increment."""
 
     t: float
     dt: float
@@ -382,4 +383,11 @@ class OdometryModel:
             sv = n.velocity_frac * abs(prev.v)
             sw = n.omega_frac * abs(prev.omega) + n.omega_floor
             cov = np.diag([sv * sv * dt, sw * sw * dt])
-        return Increment(msg.t, dt, ds, dth, cov)
+        # The wheels' distances a differential drive's (v, ω) stand for, and the brake
+        # levels over the increment: what a slip estimate corrects (slam.slip).
+        half = 0.5 * self.cal.track_m
+        wheels = (ds - dth * half, ds + dth * half)
+        levels = self._brake_level
+        if self._brake_schedule is not None:
+            levels = self._brake_schedule.mean(prev.t, msg.t)
+        return Increment(msg.t, dt, ds, dth, cov, wheels, levels)

@@ -81,6 +81,7 @@ calibration there are none (the localizers' defaults were fitted to the raw file
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -92,6 +93,7 @@ from hardware.choices import Choice, coerce
 from hardware.datasets.base import (
     Dataset,
     DatasetError,
+    as_float,
     as_int,
     coerce_option,
     config_metadata,
@@ -104,8 +106,9 @@ from hardware.datasets.base import (
     time_order,
     velocity_stream,
 )
+from hardware.datasets.synthetic_slip import inject_slip
 from hardware.datasets.textio import FolderFiles, find_optional, read_table
-from hardware.messages import RangeBearing, VelocityOdometry
+from hardware.messages import BrakeCommand, RangeBearing, VelocityOdometry
 from hardware.registry import Spec
 
 ROBOTS = (1, 2, 3, 4, 5)
@@ -174,14 +177,22 @@ DATASET1_LOCALIZER_SETTINGS = {
 class MrclamOptions:
     """robot: 1–5. groundtruth: "auto" | "exact" | "approximate" | "none".
     calibration: "dataset1" (the corrections fitted on Dataset 1, module docstring) |
-    "none" (the files' values)."""
+    "none" (the files' values). slip: a braking walker's slip put into the odometry, the
+    slip ratio at full "brake" of the inner wheel of every turn
+    (`hardware.datasets.synthetic_slip`; 0: none), drawn with slip_seed."""
 
     robot: int = 1
     groundtruth: GroundTruthChoice = GroundTruthChoice.AUTO
     calibration: CalibrationChoice = CalibrationChoice.DATASET1
+    slip: float = 0.0
+    slip_seed: int = 0
 
     def __post_init__(self) -> None:
         coerce_option(self, "robot", as_int)
+        coerce_option(self, "slip", as_float)
+        coerce_option(self, "slip_seed", as_int)
+        if not (math.isfinite(self.slip) and 0.0 <= self.slip < 0.95):
+            raise DatasetError(f"mrclam: slip must be in [0, 0.95), got {self.slip}")
         coerce(self, groundtruth=GroundTruthChoice, calibration=CalibrationChoice)
 
 
@@ -436,6 +447,16 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
     cal = DATASET1_CALIBRATION if options.calibration == "dataset1" else MrclamCalibration()
     odo, ranges = _calibrate(robot, cal)
     rb = robot.sightings
+    calibration = WalkerCalibration(
+        track_m=CREATE_TRACK_M,
+        frame_width_m=CREATE_DIAMETER_M,
+        frame_length_m=CREATE_DIAMETER_M,
+    )
+    slipped = (
+        inject_slip(odo, options.slip, CREATE_TRACK_M, options.slip_seed) if options.slip else None
+    )
+    if slipped is not None:
+        odo = slipped.odometry
     streams = tie_ordered_streams(
         (VelocityOdometry, velocity_stream(odo[:, 0], odo[:, 1], odo[:, 2])),
         (RangeBearing, range_bearing_stream(rb[:, 0], robot.sighting_ids, ranges, rb[:, 3])),
@@ -443,11 +464,19 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
     )
     name = f"{folder.name}/robot{options.robot}"
     metadata = _metadata(name, options, folder, robot, odo, cal)
-    calibration = WalkerCalibration(
-        track_m=CREATE_TRACK_M,
-        frame_width_m=CREATE_DIAMETER_M,
-        frame_length_m=CREATE_DIAMETER_M,
-    )
+    if slipped is not None:
+        # after the odometry at equal times: a row's brake holds from it on, as its velocity
+        commands = slipped.brake_commands(calibration.brake)
+        motion = next(iter(streams.items()))
+        streams = {motion[0]: motion[1], BrakeCommand: lambda: iter(commands), **streams}
+        metadata["slip"] = slipped.summary(options.slip)
+        metadata["dataset"]["counts"][BrakeCommand.__name__] = len(commands)
+        metadata["dataset"]["notes"] = [
+            *metadata["dataset"].get("notes", []),
+            f"synthetic slip {options.slip} (seed {options.slip_seed}) on the inner wheel of "
+            "every turn, with a BrakeCommand of the level that caused it "
+            "(hardware.datasets.synthetic_slip)",
+        ]
     arrays = {
         "landmark_ids": robot.landmark_ids,
         "landmark_xy": robot.landmarks[:, 1:3].copy(),
