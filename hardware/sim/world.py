@@ -669,42 +669,42 @@ def _parse_obstacle(e: _Entry, index: int) -> tuple[Obstacle, _Frame | None]:
                 sx, sy = e.num("sx"), e.num("sy")
                 boxes_t = (Box(x, y, yaw, sx, sy, e.num("z0", 0.0), e.num("height")),)
             else:
-                defaults = {
-                    "table": (None, None),
-                    "desk": (None, None),
-                    "chair": (0.45, 0.45),
-                    "office-chair": (0.46, 0.46),
-                }
-                dw, dd = defaults[kind]
-                w, dp = e.num("width", dw), e.num("depth", dd)
-                sx, sy = dp, w
-                if kind == "table":
-                    boxes_t = table_boxes(x, y, yaw, w, dp, e.num("height", 0.75))
-                elif kind == "desk":
-                    modesty = e.get("modesty", True)
-                    if not isinstance(modesty, bool):
-                        raise _SpecError(f"{e.where}: 'modesty' must be true or false")
-                    boxes_t = desk_boxes(x, y, yaw, w, dp, e.num("height", 0.75), modesty)
-                elif kind == "office-chair":
-                    boxes_t = office_chair_boxes(
-                        x,
-                        y,
-                        yaw,
-                        w,
-                        dp,
-                        e.num("seat_height", 0.47),
-                        e.num("back_height", 0.95),
-                        e.num("base_radius", 0.33),
-                    )
-                else:
-                    boxes_t = chair_boxes(
-                        x, y, yaw, w, dp, e.num("seat_height", 0.45), e.num("back_height", 0.85)
-                    )
+                boxes_t, sx, sy = _furniture_boxes(e, kind, x, y, yaw)
             frame = _Frame(x, y, yaw, -sx / 2, sx / 2, -sy / 2, sy / 2)
         e.done()
         return Obstacle(name, kind, boxes_t), frame
     except ValueError as err:
         raise _SpecError(f"{e.where}: {err}") from None
+
+
+# Default (width, depth) of the furniture kinds; None: required.
+_FURNITURE_SIZE = {
+    "table": (None, None),
+    "desk": (None, None),
+    "chair": (0.45, 0.45),
+    "office-chair": (0.46, 0.46),
+}
+
+
+def _furniture_boxes(
+    e: _Entry, kind: str, x: float, y: float, yaw: float
+) -> tuple[tuple[Box, ...], float, float]:
+    """The boxes of a table, desk, chair or office chair in compact form, and its
+    outline's extent along its local x (depth) and y (width)."""
+    dw, dd = _FURNITURE_SIZE[kind]
+    w, dp = e.num("width", dw), e.num("depth", dd)
+    if kind == "table":
+        return table_boxes(x, y, yaw, w, dp, e.num("height", 0.75)), dp, w
+    if kind == "desk":
+        modesty = e.get("modesty", True)
+        if not isinstance(modesty, bool):
+            raise _SpecError(f"{e.where}: 'modesty' must be true or false")
+        return desk_boxes(x, y, yaw, w, dp, e.num("height", 0.75), modesty), dp, w
+    if kind == "office-chair":
+        heights = (e.num("seat_height", 0.47), e.num("back_height", 0.95))
+        return office_chair_boxes(x, y, yaw, w, dp, *heights, e.num("base_radius", 0.33)), dp, w
+    heights = (e.num("seat_height", 0.45), e.num("back_height", 0.85))
+    return chair_boxes(x, y, yaw, w, dp, *heights), dp, w
 
 
 def _parse_tag(e: _Entry, frames: dict[str, _Frame | None]) -> TagPose:
