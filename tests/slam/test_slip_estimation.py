@@ -370,7 +370,9 @@ def clean_trial(tmp_path_factory):
 @pytest.mark.slow
 def test_slip_aware_gtsam_on_dusty_is_near_its_clean_floor_ate(course_trial, clean_trial):
     """Seed 2 (README "Wheel-slip estimation", seeds 0-2): dusty 0.066 m at defaults,
-    0.026 m with the mitigation; clean 0.027 m at defaults, 0.021 m with it."""
+    0.026 m with the mitigation; clean 0.027 m at defaults, 0.021 m with it (the blind
+    users). With the goggle-wearing users of 2026-12-02: dusty 0.045 m at defaults, 0.026 m
+    with the mitigation."""
     from experiments.metrics import ate
 
     def error(path, over):
@@ -379,6 +381,6 @@ def test_slip_aware_gtsam_on_dusty_is_near_its_clean_floor_ate(course_trial, cle
 
     dusty, dusty_default = error(course_trial, MITIGATION), error(course_trial, {})
     clean, clean_default = error(clean_trial, MITIGATION), error(clean_trial, {})
-    assert dusty < 0.5 * dusty_default
+    assert dusty < 0.7 * dusty_default
     assert dusty < 1.2 * clean_default
     assert dusty < 1.5 * clean
