@@ -105,6 +105,13 @@ def simulate(
         str,
         typer.Option(help="L,R: each rear wheel's factor of the surface's slip coefficient"),
     ] = "1,1",
+    start_still: Annotated[
+        float,
+        typer.Option(
+            help="seconds the user stands still at the start before walking (the walker "
+            "at rest while the recording starts: a gyro learns its bias then)"
+        ),
+    ] = 0.0,
 ) -> None:
     """Simulate a trial in closed loop and record it, with ground truth, to an MCAP log.
 
@@ -130,6 +137,7 @@ def simulate(
             duration_s=duration,
             gyro=GyroSimConfig(enabled=gyro),
             slip_scale=scale,
+            start_still_s=start_still,
         ),
         "simulate",
     )

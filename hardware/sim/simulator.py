@@ -101,6 +101,10 @@ class SimConfig:
     come from a seed stream of their own, so switching it on changes no other sensor.
     slip_scale: (left, right) factors of the surface's slip coefficient per wheel
     (`hardware.sim.slip`); (1, 1): both wheels slip alike.
+    start_still_s: the user stands still at the start for this long before walking (a
+    real trial's start: the walker at rest while the experimenter starts the recording,
+    which is when a gyro can learn its turn-on bias free of encoder noise); 0: they walk
+    at once, as before the option existed.
     """
 
     surface: str | float = "dusty"
@@ -123,9 +127,14 @@ class SimConfig:
     tags: TagCameraConfig = field(default_factory=TagCameraConfig)
     gyro: GyroSimConfig = field(default_factory=GyroSimConfig)
     slip_scale: tuple[float, float] = (1.0, 1.0)
+    start_still_s: float = 0.0
 
     def __post_init__(self) -> None:
         wheel_slip_coefficients(self.surface, self.slip_scale)
+        if not (math.isfinite(self.start_still_s) and 0 <= self.start_still_s < self.duration_s):
+            raise ValueError(
+                f"start_still_s must be >= 0 and shorter than the trial, got {self.start_still_s}"
+            )
         if not (math.isfinite(self.duration_s) and self.duration_s > 0):
             raise ValueError(f"duration must be > 0 s, got {self.duration_s}")
         for name in ("encoder_rate_hz", "depth_rate_hz", "tag_rate_hz", "groundtruth_rate_hz"):
@@ -331,7 +340,10 @@ class Simulator:
     # -- internals --------------------------------------------------------------------
     def _physics_step(self, out: list[Message]) -> None:
         w, s, dt = self.config.walker, self.state, self.dt
-        handle_l, handle_r = self.user.forces(s, dt)
+        if self.t < self.config.start_still_s:
+            handle_l, handle_r = 0.0, 0.0  # the user waits at the start
+        else:
+            handle_l, handle_r = self.user.forces(s, dt)
         self.brakes.step(dt)
         wl, wr = s.wheel_speeds(w.half_track_m)
         f_bl, f_br = self.brakes.ground_forces(wl, wr)

@@ -12,7 +12,7 @@ import pytest
 from experiments.run import replay_log
 from experiments.simulation import RunSpec, simulate
 from hardware.log import read_log
-from hardware.messages import EncoderTicks, GyroRate
+from hardware.messages import EncoderTicks, GroundTruthPose, GyroRate
 from hardware.sim.gyro import GyroSimConfig
 from hardware.sim.simulator import SimConfig
 from tests.experiments.test_cli import assert_one_line_error, walkerslam
@@ -79,3 +79,54 @@ def test_gyro_aided_dead_reckoning_keeps_its_heading_on_a_dusty_braked_trial(tmp
     bias = trial.metadata["gyro"]["turn_on_bias_rad_s"]
     assert gyro["bias_rad_s"] == pytest.approx(bias, abs=1e-3)
     assert np.isfinite(gyro["scale_error"]) and gyro["encoder_fallbacks"] == 0
+
+
+def test_a_still_start_holds_the_walker_and_gives_the_gyro_its_bias(tmp_path):
+    """`simulate --start-still 2`: the walker stays where it starts for 2 s, then walks;
+    the gyro-aided replay learns the turn-on bias from that standstill (no encoder noise
+    at rest) to within three times the gyro's white noise over its 1.7 s of windows
+    (6.7e-5 rad/s each) plus the bias instability (3.4e-5 rad/s): 2.5e-4 rad/s; the same
+    2.4 s walked from the start learn it from moving windows, whose encoder turns are
+    quantised (seed 3: 1.0e-4 off after the standstill, 9.4e-4 without)."""
+    log = tmp_path / "still.mcap"
+    res = walkerslam(
+        "simulate", "-o", log, "--gyro", "--duration", "2.4", "--seed", "3", "--start-still", "2"
+    )
+    assert res.returncode == 0, res.stderr
+    trial = read_log(log)
+    assert trial.metadata["sim"]["start_still_s"] == 2.0
+    truth = np.array(
+        [(m.t, m.x, m.y, m.theta) for m in trial.messages() if isinstance(m, GroundTruthPose)]
+    )
+    still, walking = truth[truth[:, 0] < 2.0], truth[truth[:, 0] > 2.3]
+    assert len(still) == 100 and np.ptp(still[:, 1:], axis=0).max() == 0.0
+    assert np.hypot(*(walking[-1, 1:3] - still[0, 1:3])) > 0.01  # then the user walks
+    fused = replay_log(
+        trial, tmp_path / "r", localizer_overrides={"noise.gyro.enabled": True},
+        figures=False, drag_metrics=False,
+    )  # fmt: skip
+    gyro = fused.metrics["localizer_diagnostics"]["gyro"]
+    bias = trial.metadata["gyro"]["turn_on_bias_rad_s"]
+    assert abs(bias) > 0.01  # a bias worth learning (seed 3: -0.04 rad/s)
+    assert gyro["bias_rad_s"] == pytest.approx(bias, abs=2.5e-4)
+    walked = tmp_path / "walked.mcap"
+    assert (
+        walkerslam(
+            "simulate", "-o", walked, "--gyro", "--duration", "2.4", "--seed", "3"
+        ).returncode
+        == 0
+    )
+    moving = replay_log(
+        read_log(walked),
+        tmp_path / "w",
+        localizer_overrides={"noise.gyro.enabled": True},
+        figures=False,
+        drag_metrics=False,
+    ).metrics["localizer_diagnostics"]["gyro"]
+    assert abs(moving["bias_rad_s"] - bias) > 3 * abs(gyro["bias_rad_s"] - bias)
+
+
+def test_a_still_start_longer_than_the_trial_is_a_one_line_error(tmp_path):
+    res = walkerslam("simulate", "-o", tmp_path / "x.mcap", "--duration", "2", "--start-still", "5")
+    assert_one_line_error(res, "start_still_s", "shorter than the trial")
+    assert not (tmp_path / "x.mcap").exists()
