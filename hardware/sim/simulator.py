@@ -131,12 +131,12 @@ class SimConfig:
 
     def __post_init__(self) -> None:
         wheel_slip_coefficients(self.surface, self.slip_scale)
+        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
+            raise ValueError(f"duration must be > 0 s, got {self.duration_s}")
         if not (math.isfinite(self.start_still_s) and 0 <= self.start_still_s < self.duration_s):
             raise ValueError(
                 f"start_still_s must be >= 0 and shorter than the trial, got {self.start_still_s}"
             )
-        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
-            raise ValueError(f"duration must be > 0 s, got {self.duration_s}")
         for name in ("encoder_rate_hz", "depth_rate_hz", "tag_rate_hz", "groundtruth_rate_hz"):
             rate = getattr(self, name)
             if rate <= 0 or self.physics_rate_hz % rate:
