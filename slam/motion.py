@@ -16,7 +16,8 @@ too unreliable for a rate: a 1 ms piece may carry centimetres), velocity_model
 var(dθ) = k₃|ds| + k₄|dθ| (`distance_walk`), whatever the timing. The opt-in
 brake-aware variant inflates a wheel's variance with its logged brake torque τ:
 σ² += k_brake·(τ/τ_max)·|d|, and can remove an expected under-report (bias) of
-bias_per_full_brake·(τ/τ_max) of the distance (the slip the brake causes).
+bias_per_full_brake·(τ/τ_max) of the distance (the slip the brake causes); for velocity
+odometry it does the same to the two wheels' distances that (v, ω) stand for.
 
 With a yaw-rate gyro (`MotionNoise.gyro.enabled`, `slam.gyro`), an increment keeps the
 odometry's ds and its variance but takes dθ from the gyro, integrated over the same
@@ -57,6 +58,15 @@ def arc_increment(ds: float, dtheta: float, theta: float) -> tuple[float, float]
 def wheel_increment(ds_left: float, ds_right: float, track: float) -> tuple[float, float]:
     """(ds, dθ) of the axle centre from the distances rolled by the two wheels (eqs 4.9, 4.10)."""
     return 0.5 * (ds_left + ds_right), (ds_right - ds_left) / track
+
+
+def _wheel_cov(var_left: float, var_right: float, track: float) -> np.ndarray:
+    """The (ds, dθ) covariance of independent wheel distances with these variances:
+    (ds, dθ) = J (d_left, d_right), J = [[1/2, 1/2], [−1/B, 1/B]]."""
+    a, b = var_left, var_right
+    return np.array(
+        [[0.25 * (a + b), 0.5 * (b - a) / track], [0.5 * (b - a) / track, (a + b) / track**2]]
+    )
 
 
 def sinc_and_derivative(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -356,19 +366,21 @@ class OdometryModel:
         if self._brake_schedule is not None:
             levels = self._brake_schedule.mean(prev.t, msg.t)
         var = [n.wheel_m * abs(d[0]), n.wheel_m * abs(d[1])]
-        if n.brake_aware:
-            for i in (0, 1):
-                level = levels[i]
-                var[i] += n.brake_wheel_m * level * abs(d[i])
-                d[i] /= 1.0 - min(n.bias_per_full_brake * level, 0.9)
+        self._brake_aware(d, var, levels)
         track = self.cal.track_m
         ds, dth = wheel_increment(d[0], d[1], track)
-        # (ds, dθ) = J (d_left, d_right), J = [[1/2, 1/2], [−1/B, 1/B]]
-        a, b = var
-        cov = np.array(
-            [[0.25 * (a + b), 0.5 * (b - a) / track], [0.5 * (b - a) / track, (a + b) / track**2]]
-        )
-        return Increment(msg.t, msg.t - prev.t, ds, dth, cov, counted, levels)
+        return Increment(msg.t, msg.t - prev.t, ds, dth, _wheel_cov(*var, track), counted, levels)
+
+    def _brake_aware(self, d: list[float], var: list[float], levels) -> None:
+        """With `noise.brake_aware`: each wheel's distance d grown by the under-report its
+        brake level causes and its variance var by the braked-wheel term (in place); the
+        same for encoder ticks and for the wheels a velocity odometry stands for."""
+        n = self.noise
+        if not n.brake_aware:
+            return
+        for i in (0, 1):
+            var[i] += n.brake_wheel_m * levels[i] * abs(d[i])
+            d[i] /= 1.0 - min(n.bias_per_full_brake * levels[i], 0.9)
 
     def _from_velocity(self, prev: VelocityOdometry, msg: VelocityOdometry) -> Increment | None:
         dt = msg.t - prev.t
@@ -385,9 +397,14 @@ class OdometryModel:
             cov = np.diag([sv * sv * dt, sw * sw * dt])
         # The wheels' distances a differential drive's (v, ω) stand for, and the brake
         # levels over the increment: what a slip estimate corrects (slam.slip).
-        half = 0.5 * self.cal.track_m
-        wheels = (ds - dth * half, ds + dth * half)
+        track = self.cal.track_m
+        wheels = (ds - 0.5 * dth * track, ds + 0.5 * dth * track)
         levels = self._brake_level
         if self._brake_schedule is not None:
             levels = self._brake_schedule.mean(prev.t, msg.t)
+        if n.brake_aware:
+            d, var = list(wheels), [0.0, 0.0]
+            self._brake_aware(d, var, levels)
+            ds, dth = wheel_increment(d[0], d[1], track)
+            cov = cov + _wheel_cov(*var, track)
         return Increment(msg.t, dt, ds, dth, cov, wheels, levels)

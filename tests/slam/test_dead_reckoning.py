@@ -219,3 +219,28 @@ def test_localizer_contracts():
         mapper = name in ("ekf-slam", "fastslam", "gtsam")
         assert isinstance(loc, LandmarkMapper) == mapper, name
         assert isinstance(loc, MapScorer) == (name in ("particle-filter", "grid-rbpf")), name
+
+
+def test_brake_aware_noise_corrects_velocity_odometry_as_it_does_ticks():
+    """A velocity odometry's (v, ω) stands for two wheel distances; brake-aware noise
+    grows the braked one by the same factor as a braked encoder's (a log with brakes but
+    velocity odometry, e.g. MRCLAM with synthetic slip, is corrected, not left alone)."""
+    from hardware.messages import BrakeCommand, VelocityOdometry
+    from slam.motion import MotionNoise, OdometryModel
+
+    noise = MotionNoise(brake_aware=True, bias_per_full_brake=0.1)
+    plain, aware = OdometryModel(CAL), OdometryModel(CAL, noise)
+    half = 0.5 * CAL.track_m
+    v, omega = 0.475, 0.05 / CAL.track_m  # left wheel 0.45 m/s, right 0.5 m/s
+    for model in (plain, aware):
+        model.increment(BrakeCommand(0.0, CAL.brake.torque_max_nm, CAL.brake.torque_off_nm))
+        model.increment(VelocityOdometry(0.0, v, omega))
+    a = plain.increment(VelocityOdometry(1.0, v, omega))
+    b = aware.increment(VelocityOdometry(1.0, v, omega))
+    assert a.wheels == pytest.approx(b.wheels)  # what was measured stays in the increment
+    left, right = b.ds - half * b.dtheta, b.ds + half * b.dtheta
+    assert left == pytest.approx(a.wheels[0] / (1 - 0.1 * b.brake_level[0]))
+    assert right == pytest.approx(a.wheels[1] / (1 - 0.1 * b.brake_level[1]))
+    assert b.brake_level == pytest.approx((1.0, 0.0), abs=1e-9)
+    assert b.dtheta == pytest.approx(0.0, abs=1e-12)  # 0.45 m → 0.5 m: straight after all
+    assert b.cov[1, 1] > a.cov[1, 1] and b.cov[0, 0] > a.cov[0, 0]
