@@ -190,8 +190,12 @@ def test_faults_unplug_garbage_reset_and_a_camera_stall(tmp_path, board):
         before = next(m for m in reversed(order[:i]) if isinstance(m, EncoderTicks))
         after = next(m for m in order[i:] if isinstance(m, EncoderTicks))
         assert (after.left, after.right) == (before.left, before.right), event
+    # nor does the pose: counts not re-based would jump it by the metres walked so far
+    # (~3 m at the unplug, ~6 m at the reset). A step is ~1 cm (1 m/s, 100 Hz), but on a
+    # busy host simavr's board can fall behind the world, which runs in real time, and
+    # one report then carries the wheels' motion of several (0.6 m seen under load)
     poses = res.pipeline.localizer.trajectory().poses
-    assert np.hypot(*np.diff(poses[:, :2], axis=0).T).max() < 0.2  # ~1 m/s, 100 Hz
+    assert np.hypot(*np.diff(poses[:, :2], axis=0).T).max() < 1.0
     # the camera stall: the safety layer ramps the brakes to the residual torque after
     # the stale limit (0.3 s) over its ramp (0.5 s), and the status says why
     off = res.pipeline.calibration.brake.torque_off_nm
