@@ -240,6 +240,9 @@ class GtsamConfig(LocalizerConfig):
     after the last keyframe start a new one (else they attach to it).
     range_sigma_m + range_sigma_frac·r, bearing_sigma_rad: landmark measurement noise;
     huber_k: robust kernel threshold in standard deviations.
+    use_landmarks: False ignores landmark observations (tags, range-bearing): the
+    smoother then runs on odometry, absolute fixes and scan matching alone (to study
+    scan correction without tags on a log that has them).
     observation: "range-bearing" (BearingRangeFactor2D to a point landmark) or
     "tag-pose" (BetweenFactorPose2 to a Pose2 tag; module docstring), with
     yaw_sigma_rad + yaw_sigma_per_m2·r² the tag-yaw noise (as FastSlamConfig's: they fit
@@ -276,6 +279,7 @@ class GtsamConfig(LocalizerConfig):
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     huber_k: float = 1.345
+    use_landmarks: bool = True
     observation: ObservationModel = ObservationModel.RANGE_BEARING
     yaw_sigma_rad: float = 0.02
     yaw_sigma_per_m2: float = 0.03
@@ -432,7 +436,10 @@ class GtsamSmoother(Localizer):
             self._note(msg.t)
             if self._keyframe_due(msg.t):
                 self._new_keyframe(msg.t)
-        elif (obs := landmark_observation(msg, self.calibration)) is not None:
+        elif (
+            self.config.use_landmarks
+            and (obs := landmark_observation(msg, self.calibration)) is not None
+        ):
             if self.config.align_observations and self._t is not None and obs.t > self._t:
                 self._held.append(obs)  # placed when the next odometry message spans it
             else:

@@ -45,33 +45,39 @@ def test_odometry_only_is_the_odometry_chain_and_says_so():
     assert "odometry only" in sm.diagnostics()["note"]
 
 
-def _square_with_landmarks(outlier=False):
-    """Drive a 4 m square (exact ticks) seeing landmark 3 at (2, 2) from every keyframe."""
+def _square_messages(outlier=False):
+    """A 4 m square (exact ticks) seeing landmark 3 at (2, 2) from every keyframe."""
     cal = WalkerCalibration()
-    sm = create("gtsam", cal)
     m = cal.metres_per_count
     left = right = 0
     t = 0.0
-    sm.process(EncoderTicks(t, 0, 0))
+    yield EncoderTicks(t, 0, 0)
     pose = np.zeros(3)
     for side in range(4):
         for _ in range(40):  # 1 m in 2.5 cm steps along x of the walker
             n = round(0.025 / m)
             left, right = left + n, right + n
             t += 0.05
-            sm.process(EncoderTicks(t, left, right))
+            yield EncoderTicks(t, left, right)
             pose[:2] += n * m * np.array([np.cos(pose[2]), np.sin(pose[2])])
             d = np.array([2.0, 2.0]) - pose[:2]
             rng, bearing = np.hypot(*d), np.arctan2(d[1], d[0]) - pose[2]
             if outlier and side == 2:
                 rng += 3.0
-            sm.process(RangeBearing(t, 3, rng, bearing))
+            yield RangeBearing(t, 3, rng, bearing)
         # turn 90° left on the spot
         n = round(np.pi / 2 * cal.track_m / 2 / m)
         left, right = left - n, right + n
         t += 0.5
-        sm.process(EncoderTicks(t, left, right))
+        yield EncoderTicks(t, left, right)
         pose[2] += n * m * 2 / cal.track_m
+
+
+def _square_with_landmarks(outlier=False, config=None):
+    """The smoother after driving the square of `_square_messages`."""
+    sm = create("gtsam", WalkerCalibration(), config)
+    for msg in _square_messages(outlier):
+        sm.process(msg)
     return sm
 
 
@@ -83,6 +89,19 @@ def test_landmark_position_and_robust_outliers():
     noisy = _square_with_landmarks(outlier=True)
     # a whole side of 3 m-off ranges drags the landmark much less than 3 m (Huber)
     assert np.hypot(*(noisy.landmarks()[3][0] - [2.0, 2.0])) < 0.5
+
+
+def test_without_landmarks_the_observations_are_ignored():
+    """use_landmarks=False (scan correction without tags on a log that has them): the
+    range-bearing observations of the square add no factor and no landmark; an outlier
+    side that drags the landmark-using smoother leaves this one untouched."""
+    ignoring = _square_with_landmarks(outlier=True, config=GtsamConfig(use_landmarks=False))
+    assert ignoring.landmarks() == {} and ignoring.diagnostics()["landmark_factors"] == 0
+    odometry = create("gtsam", WalkerCalibration())
+    for msg in _square_messages(outlier=True):
+        if isinstance(msg, EncoderTicks):
+            odometry.process(msg)
+    assert np.allclose(ignoring.trajectory().poses, odometry.trajectory().poses, atol=1e-9)
 
 
 def test_same_input_same_output():
