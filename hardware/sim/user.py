@@ -59,15 +59,14 @@ class UserParams:
     scrape_turn_rad_s / scrape_s: a contact
     they feel but that does not stop them (a scrape) makes them steer away from it this
     fast for this long.
-    detour_step_m / detour_max_m / detour_length_m: caught on the same thing a third
-    time (a collision, or a push that does not give for stuck_s, within repeat_radius_m
-    of repeat_count earlier ones in the last repeat_window_s), they know it is there and
-    go round it wider: their path shifts away from the contact's side by detour_step_m
-    per repeat beyond repeat_count - 1 (at most detour_max_m) for the next
-    detour_length_m of the route, after a back-off as many times longer. It replaces a
-    user who steps back and walks into the same corner again and again for minutes
-    (the studies' user 8, 49 times); a second contact changes nothing (shifting the
-    path then sent users across narrow gaps into what was on the other side).
+    detour_step_m / detour_max_m / detour_length_m: caught again on what they touched
+    (a collision, or a push that does not give for stuck_s, within repeat_radius_m of one
+    in the last repeat_window_s), they know
+    it is there and go round it wider: their path shifts away from the contact's side
+    by detour_step_m per earlier collision there (at most detour_max_m) for the next
+    detour_length_m of the route, after a back-off as many times longer. A first
+    collision changes nothing of this (a user who steps back and carries on straight
+    into the same corner again and again is what it replaces).
     sighted: they see where the walker is (e.g. a helper pushing it along tape on the
     floor for a calibration run): their sense of position is the true pose, and the
     impairment values above do not apply.
@@ -101,7 +100,6 @@ class UserParams:
     detour_length_m: float = 1.5
     repeat_radius_m: float = 0.3
     repeat_window_s: float = 20.0
-    repeat_count: int = 2
     sighted: bool = False
 
 
@@ -335,7 +333,7 @@ class RouteFollower:
 
     def on_collision(self, state: WalkerState, point: np.ndarray) -> None:
         """Felt a collision at `point` (world): step back, swinging the front away from it;
-        caught there again and again, go round it wider (UserParams.detour_*)."""
+        caught there again, go round it wider (UserParams.detour_*)."""
         p = self.p
         self.belief[:] = (state.x, state.y, state.phi)
         side = _lateral(state, point)
@@ -347,11 +345,10 @@ class RouteFollower:
             math.dist(c[1:], (point[0], point[1])) < p.repeat_radius_m for c in self._contacts
         )
         self._contacts.append((self._t, float(point[0]), float(point[1])))
-        if before >= p.repeat_count:
-            extra = before - p.repeat_count + 1
-            self._detour = -math.copysign(min(p.detour_step_m * extra, p.detour_max_m), side)
+        if before:
+            self._detour = -math.copysign(min(p.detour_step_m * before, p.detour_max_m), side)
             self._detour_until = self._progress + round(p.detour_length_m / ROUTE_STEP_M)
-            self._backoff_left_s = p.backoff_s * (1 + extra)
+            self._backoff_left_s = p.backoff_s * (1 + before)
 
     def on_scrape(self, state: WalkerState, point: np.ndarray) -> None:
         """Felt a contact that does not stop them at `point`: steer away from it a while."""
