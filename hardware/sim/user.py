@@ -59,14 +59,6 @@ class UserParams:
     scrape_turn_rad_s / scrape_s: a contact
     they feel but that does not stop them (a scrape) makes them steer away from it this
     fast for this long.
-    detour_step_m / detour_max_m / detour_length_m: caught again on what they touched
-    (a collision, or a push that does not give for stuck_s, within repeat_radius_m of one
-    in the last repeat_window_s), they know
-    it is there and go round it wider: their path shifts away from the contact's side
-    by detour_step_m per earlier collision there (at most detour_max_m) for the next
-    detour_length_m of the route, after a back-off as many times longer. A first
-    collision changes nothing of this (a user who steps back and carries on straight
-    into the same corner again and again is what it replaces).
     sighted: they see where the walker is (e.g. a helper pushing it along tape on the
     floor for a calibration run): their sense of position is the true pose, and the
     impairment values above do not apply.
@@ -95,11 +87,6 @@ class UserParams:
     gap_margin_m: float = 0.3
     scrape_turn_rad_s: float = 0.3
     scrape_s: float = 0.5
-    detour_step_m: float = 0.15
-    detour_max_m: float = 0.45
-    detour_length_m: float = 1.5
-    repeat_radius_m: float = 0.3
-    repeat_window_s: float = 20.0
     sighted: bool = False
 
 
@@ -278,9 +265,6 @@ class RouteFollower:
         self._touching_s = 0.0
         self._t = 0.0
         self._offset = 0.0  # the offset across the route they walk at (+ = left)
-        self._contacts: list[tuple[float, float, float]] = []  # (t, x, y) of collisions
-        self._detour = 0.0  # extra offset round something they were caught on again
-        self._detour_until = -1  # ... up to this index of the dense route
         self._free = math.inf  # free distance ahead of the frame, as they see it
         self.vision = (
             GogglesVision(sight, params.vision, vision_rng or np.random.default_rng(0))
@@ -332,23 +316,11 @@ class RouteFollower:
             self.belief += gain * err
 
     def on_collision(self, state: WalkerState, point: np.ndarray) -> None:
-        """Felt a collision at `point` (world): step back, swinging the front away from it;
-        caught there again, go round it wider (UserParams.detour_*)."""
-        p = self.p
+        """Felt a collision at `point` (world): step back, swinging the front away from it."""
         self.belief[:] = (state.x, state.y, state.phi)
-        side = _lateral(state, point)
-        self._backoff_left_s = p.backoff_s
-        self._backoff_turn = -math.copysign(p.backoff_turn_rad_s, side)
+        self._backoff_left_s = self.p.backoff_s
+        self._backoff_turn = -math.copysign(self.p.backoff_turn_rad_s, _lateral(state, point))
         self._touching_s = 0.0
-        self._contacts = [c for c in self._contacts if self._t - c[0] < p.repeat_window_s]
-        before = sum(
-            math.dist(c[1:], (point[0], point[1])) < p.repeat_radius_m for c in self._contacts
-        )
-        self._contacts.append((self._t, float(point[0]), float(point[1])))
-        if before:
-            self._detour = -math.copysign(min(p.detour_step_m * before, p.detour_max_m), side)
-            self._detour_until = self._progress + round(p.detour_length_m / ROUTE_STEP_M)
-            self._backoff_left_s = p.backoff_s * (1 + before)
 
     def on_scrape(self, state: WalkerState, point: np.ndarray) -> None:
         """Felt a contact that does not stop them at `point`: steer away from it a while."""
@@ -387,12 +359,11 @@ class RouteFollower:
             self.finished = True
         i = min(self._progress + round(self.p.lookahead_m / ROUTE_STEP_M), len(self._dense) - 1)
         point = self._dense[i]
-        offset = self._offset + (self._detour if self._progress < self._detour_until else 0.0)
-        if offset:
+        if self._offset:
             j = min(i + 1, len(self._dense) - 1)
             tangent = self._dense[j] - self._dense[max(j - 1, 0)]
             tangent = tangent / max(float(np.hypot(*tangent)), 1e-12)
-            point = point + offset * np.array([-tangent[1], tangent[0]])
+            point = point + self._offset * np.array([-tangent[1], tangent[0]])
         return self._to_walker(point[None, :])[0], remaining
 
     def _to_walker(self, xy: np.ndarray) -> np.ndarray:
