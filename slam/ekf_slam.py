@@ -16,6 +16,7 @@ slip-corrected arc and k by its random walk, and the tag updates correct both.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -40,8 +41,6 @@ from slam.measurement import (
     landmark_from_range_bearing,
     landmark_from_range_bearing_jacobians,
     landmark_observation,
-    range_bearing,
-    range_bearing_jacobians,
 )
 from slam.motion import Cov3, Increment, MotionNoise, OdometryModel, propagate, split_increment
 from slam.rts import arc_steps, rts_smooth
@@ -277,18 +276,49 @@ class EkfSlam(Localizer):
         self.counts["new_landmarks"] += 1
 
     def _update(self, j: int, z: np.ndarray, amend: bool = True) -> None:
+        """The Kalman update by a range-bearing observation z of the landmark at state
+        index j, in closed form: H has a pose block G_s and the landmark's block G_l
+        (`slam.measurement.range_bearing_jacobians`), both from (dx, dy), so P Hᵀ is
+        two combinations of five columns of P and S a 2×2 (issue 13: numpy's per-call
+        overhead, not the arithmetic, was the cost of the general form)."""
         x, p = self._x, self._P
-        lm = x[j : j + 2]
-        g_s, g_l = range_bearing_jacobians(x[:3], lm)
-        # P Hᵀ without forming the sparse H (pose block and this landmark's block)
-        pht = p[:, :3] @ g_s.T + p[:, j : j + 2] @ g_l.T
-        s = g_s @ pht[:3] + g_l @ pht[j : j + 2] + self._noise(z)
-        nu = z - range_bearing(x[:3], lm)
-        nu[1] = wrap_angle(nu[1])
-        if self._correct(pht, s, nu, self.config.gate_chi2, amend):
-            self.counts["updates"] += 1
-        else:
+        dx, dy = float(x[j] - x[0]), float(x[j + 1] - x[1])
+        q = max(dx * dx + dy * dy, 1e-12)
+        r = math.sqrt(q)
+        a, b, c, d = (
+            dx / r,
+            dy / r,
+            -dy / q,
+            dx / q,
+        )  # G_l = [[a, b], [c, d]], G_s = [-G_l | (0, -1)]
+        pj, pj1 = p[:, j] - p[:, 0], p[:, j + 1] - p[:, 1]
+        pht = np.empty((len(x), 2))
+        pht[:, 0] = a * pj + b * pj1
+        pht[:, 1] = c * pj + d * pj1 - p[:, 2]
+        hj, hj1 = pht[j] - pht[0], pht[j + 1] - pht[1]
+        sr = self.config.range_sigma_m + self.config.range_sigma_frac * float(z[0])
+        s00 = a * hj[0] + b * hj1[0] + sr * sr
+        s01 = a * hj[1] + b * hj1[1]
+        s10 = c * hj[0] + d * hj1[0] - pht[2, 0]
+        s11 = c * hj[1] + d * hj1[1] - pht[2, 1] + self.config.bearing_sigma_rad**2
+        nu0 = float(z[0]) - r
+        nu1 = math.remainder(float(z[1]) - math.atan2(dy, dx) + float(x[2]), 2.0 * math.pi)
+        det = s00 * s11 - s01 * s10
+        i00, i01, i10, i11 = s11 / det, -s01 / det, -s10 / det, s00 / det
+        m0, m1 = i00 * nu0 + i01 * nu1, i10 * nu0 + i11 * nu1  # S⁻¹ ν
+        if nu0 * m0 + nu1 * m1 > self.config.gate_chi2:
             self.counts["gated"] += 1
+            return
+        self._x = x + pht[:, 0] * m0 + pht[:, 1] * m1
+        self._x[2] = wrap_angle(self._x[2])
+        k = np.empty_like(pht)  # K = P Hᵀ S⁻¹
+        k[:, 0] = pht[:, 0] * i00 + pht[:, 1] * i10
+        k[:, 1] = pht[:, 0] * i01 + pht[:, 1] * i11
+        p = p - k @ pht.T  # K S Kᵀ = K (P Hᵀ)ᵀ
+        self._P = 0.5 * (p + p.T)
+        if amend:
+            self.track.amend(tuple(self._x[:3].tolist()))
+        self.counts["updates"] += 1
 
     def _correct(
         self, pht: np.ndarray, s: np.ndarray, nu: np.ndarray, gate: float, amend: bool = True

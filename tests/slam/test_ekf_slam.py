@@ -138,3 +138,37 @@ def test_deferred_cross_covariance_equals_the_full_prediction():
     np.testing.assert_allclose(got_x, x, rtol=0, atol=1e-9)
     np.testing.assert_allclose(got_p, p, rtol=1e-9, atol=1e-12)
     assert np.abs(p[:3, 3:]).max() > 1e-3  # the cross-covariance did move
+
+
+def test_the_closed_form_update_is_the_kalman_update():
+    """`_update` (closed form, issue 13) gives what the textbook update with the full H
+    gives: x + K ν and P − K S Kᵀ, K = P Hᵀ S⁻¹, to rounding."""
+    from hardware.calibration import WalkerCalibration
+    from hardware.geometry import wrap_angle
+    from slam.base import create
+    from slam.measurement import range_bearing, range_bearing_jacobians
+
+    rng = np.random.default_rng(3)
+    ekf = create("ekf-slam", WalkerCalibration())
+    n = 3 + 2 * 4
+    a = rng.standard_normal((n, n))
+    ekf._x = np.concatenate([[0.3, -0.2, 0.4], rng.uniform(-5, 5, n - 3)])
+    ekf._P = a @ a.T * 0.01 + np.eye(n) * 1e-3
+    x0, p0 = ekf._x.copy(), ekf._P.copy()
+    j = 7
+    h = np.zeros((2, n))
+    h[:, :3], h[:, j : j + 2] = range_bearing_jacobians(x0[:3], x0[j : j + 2])
+    z = range_bearing(x0[:3], x0[j : j + 2]) + np.array([0.05, 0.02])
+    s = h @ p0 @ h.T + ekf._noise(z)
+    k = p0 @ h.T @ np.linalg.inv(s)
+    nu = z - range_bearing(x0[:3], x0[j : j + 2])
+    nu[1] = wrap_angle(nu[1])
+    ekf._update(j, z)
+    expected = x0 + k @ nu
+    expected[2] = wrap_angle(expected[2])
+    assert np.allclose(ekf._x, expected, rtol=0, atol=1e-12)
+    assert np.allclose(ekf._P, p0 - k @ s @ k.T, rtol=0, atol=1e-12)
+    assert ekf.counts["updates"] == 1
+    # and a residual beyond the gate changes nothing
+    ekf._update(j, z + np.array([5.0, 0.0]))
+    assert ekf.counts["gated"] == 1 and ekf.counts["updates"] == 1
