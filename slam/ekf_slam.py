@@ -219,10 +219,14 @@ class EkfSlam(Localizer):
             self._k = self._x[3:5].copy()
             self._block = self._P[:5, :5].copy()
 
-    def _noise(self, z: np.ndarray) -> np.ndarray:
+    def _variances(self, range_m: float) -> tuple[float, float]:
+        """Range and bearing variances of an observation at this range."""
         c = self.config
-        sr = c.range_sigma_m + c.range_sigma_frac * z[0]
-        return np.diag([sr * sr, c.bearing_sigma_rad**2])
+        sr = c.range_sigma_m + c.range_sigma_frac * range_m
+        return sr * sr, c.bearing_sigma_rad**2
+
+    def _noise(self, z: np.ndarray) -> np.ndarray:
+        return np.diag(self._variances(float(z[0])))
 
     def _observe(self, obs: LandmarkObservation, between: bool = False) -> None:
         """Update with one message's observations; between: made after the last
@@ -285,22 +289,18 @@ class EkfSlam(Localizer):
         dx, dy = float(x[j] - x[0]), float(x[j + 1] - x[1])
         q = max(dx * dx + dy * dy, 1e-12)
         r = math.sqrt(q)
-        a, b, c, d = (
-            dx / r,
-            dy / r,
-            -dy / q,
-            dx / q,
-        )  # G_l = [[a, b], [c, d]], G_s = [-G_l | (0, -1)]
+        # G_l = [[a, b], [c, d]]; G_s = [−G_l | (0, −1)ᵀ]
+        a, b, c, d = dx / r, dy / r, -dy / q, dx / q
         pj, pj1 = p[:, j] - p[:, 0], p[:, j + 1] - p[:, 1]
         pht = np.empty((len(x), 2))
         pht[:, 0] = a * pj + b * pj1
         pht[:, 1] = c * pj + d * pj1 - p[:, 2]
         hj, hj1 = pht[j] - pht[0], pht[j + 1] - pht[1]
-        sr = self.config.range_sigma_m + self.config.range_sigma_frac * float(z[0])
-        s00 = a * hj[0] + b * hj1[0] + sr * sr
+        var_r, var_b = self._variances(float(z[0]))
+        s00 = a * hj[0] + b * hj1[0] + var_r
         s01 = a * hj[1] + b * hj1[1]
         s10 = c * hj[0] + d * hj1[0] - pht[2, 0]
-        s11 = c * hj[1] + d * hj1[1] - pht[2, 1] + self.config.bearing_sigma_rad**2
+        s11 = c * hj[1] + d * hj1[1] - pht[2, 1] + var_b
         nu0 = float(z[0]) - r
         nu1 = math.remainder(float(z[1]) - math.atan2(dy, dx) + float(x[2]), 2.0 * math.pi)
         det = s00 * s11 - s01 * s10
@@ -309,35 +309,31 @@ class EkfSlam(Localizer):
         if nu0 * m0 + nu1 * m1 > self.config.gate_chi2:
             self.counts["gated"] += 1
             return
-        self._x = x + pht[:, 0] * m0 + pht[:, 1] * m1
-        self._x[2] = wrap_angle(self._x[2])
         k = np.empty_like(pht)  # K = P Hᵀ S⁻¹
         k[:, 0] = pht[:, 0] * i00 + pht[:, 1] * i10
         k[:, 1] = pht[:, 0] * i01 + pht[:, 1] * i11
-        p = p - k @ pht.T  # K S Kᵀ = K (P Hᵀ)ᵀ
-        self._P = 0.5 * (p + p.T)
-        if amend:
-            self.track.amend(tuple(self._x[:3].tolist()))
+        self._apply(k, pht, np.array([nu0, nu1]), amend)
         self.counts["updates"] += 1
 
-    def _correct(
-        self, pht: np.ndarray, s: np.ndarray, nu: np.ndarray, gate: float, amend: bool = True
-    ) -> bool:
-        """The Kalman correction x += K ν, P −= K S Kᵀ with K = P Hᵀ S⁻¹ (pht = P Hᵀ, s =
-        S), unless ν's squared Mahalanobis distance exceeds `gate` (then False); amend:
-        the trajectory's latest pose takes the corrected pose (not for an observation
-        placed inside an odometry step, whose pose is not the latest)."""
+    def _correct(self, pht: np.ndarray, s: np.ndarray, nu: np.ndarray, gate: float) -> bool:
+        """The Kalman correction with K = P Hᵀ S⁻¹ (pht = P Hᵀ, s = S), unless ν's squared
+        Mahalanobis distance exceeds `gate` (then False)."""
         s_inv = np.linalg.inv(s)
         if float(nu @ s_inv @ nu) > gate:
             return False
-        k = pht @ s_inv
+        self._apply(pht @ s_inv, pht, nu)
+        return True
+
+    def _apply(self, k: np.ndarray, pht: np.ndarray, nu: np.ndarray, amend: bool = True) -> None:
+        """x += K ν and P −= K S Kᵀ, as K (P Hᵀ)ᵀ, symmetrised; amend: the trajectory's
+        latest pose takes the corrected pose (not for an observation placed inside an
+        odometry step, whose pose is not the latest)."""
         self._x = self._x + k @ nu
         self._x[2] = wrap_angle(self._x[2])
-        self._P = self._P - k @ s @ k.T
-        self._P = 0.5 * (self._P + self._P.T)
+        p = self._P - k @ pht.T
+        self._P = 0.5 * (p + p.T)
         if amend:
             self.track.amend(tuple(self._x[:3].tolist()))
-        return True
 
     def _record(self, t: float) -> None:
         n = len(self.track)

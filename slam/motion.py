@@ -362,14 +362,19 @@ class OdometryModel:
         m_left, m_right = self.cal.metres_per_count_per_wheel
         d = [(msg.left - prev.left) * m_left, (msg.right - prev.right) * m_right]
         counted = (d[0], d[1])
-        levels = self._brake_level
-        if self._brake_schedule is not None:
-            levels = self._brake_schedule.mean(prev.t, msg.t)
+        levels = self._levels(prev.t, msg.t)
         var = [n.wheel_m * abs(d[0]), n.wheel_m * abs(d[1])]
         self._brake_aware(d, var, levels)
         track = self.cal.track_m
         ds, dth = wheel_increment(d[0], d[1], track)
         return Increment(msg.t, msg.t - prev.t, ds, dth, _wheel_cov(*var, track), counted, levels)
+
+    def _levels(self, t0: float, t1: float) -> tuple[float, float]:
+        """The brake levels over [t0, t1]: the schedule's mean when commands are
+        scheduled, else the latest command's."""
+        if self._brake_schedule is not None:
+            return self._brake_schedule.mean(t0, t1)
+        return self._brake_level
 
     def _brake_aware(self, d: list[float], var: list[float], levels) -> None:
         """With `noise.brake_aware`: each wheel's distance d grown by the under-report its
@@ -399,9 +404,7 @@ class OdometryModel:
         # levels over the increment: what a slip estimate corrects (slam.slip).
         track = self.cal.track_m
         wheels = (ds - 0.5 * dth * track, ds + 0.5 * dth * track)
-        levels = self._brake_level
-        if self._brake_schedule is not None:
-            levels = self._brake_schedule.mean(prev.t, msg.t)
+        levels = self._levels(prev.t, msg.t)
         if n.brake_aware:
             d, var = list(wheels), [0.0, 0.0]
             self._brake_aware(d, var, levels)
