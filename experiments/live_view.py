@@ -24,7 +24,7 @@ included), so a live view and a recorded log look alike in Foxglove:
 
     /encoders /brakes/command /range_bearing /odometry/velocity /imu/gyro /collisions
     /events
-    /tags/detections            json (walker.* JSON schemas)
+    /tags/detections /range_bearings   json (walker.* JSON schemas)
     /depth/image                foxglove.RawImage 16UC1, frame "depth_optical"
     /depth/camera_info          foxglove.CameraCalibration
     /scan                       foxglove.LaserScan, frame "walker"
@@ -158,6 +158,7 @@ from hardware.messages import (
     EncoderTicks,
     LaserScan,
     Message,
+    RangeBearings,
     TagDetections,
     VelocityOdometry,
 )
@@ -257,6 +258,8 @@ def _prototype(cls: type) -> Message | None:
         return LaserScan(0.0, 0.0, 0.0, np.zeros(1), 1.0)
     if cls is TagDetections:
         return TagDetections(0.0)
+    if cls is RangeBearings:
+        return RangeBearings.of(0.0, [], [], [])
     zero: dict[Any, Any] = {"float": 0.0, "int": 0, "str": "", float: 0.0, int: 0, str: ""}
     try:  # a flat message of numbers and strings
         return cls(**{f.name: zero[f.type] for f in fields(cls)})

@@ -31,6 +31,7 @@ from hardware.messages import (
     LaserScan,
     PositionFix,
     RangeBearing,
+    RangeBearings,
     TagDetections,
 )
 from hardware.registry import Registry, Spec
@@ -247,7 +248,7 @@ SLIP_ESTIMATION = Mitigation(
         }
         for name in ("ekf-slam", "gtsam", "fastslam")
     },
-    needs=((BrakeCommand,), (TagDetections, RangeBearing)),
+    needs=((BrakeCommand,), (TagDetections, RangeBearing, RangeBearings)),
     notes="noise.wheel_m 1e-4: the encoders' own noise once slip is modelled (a slipping "
     "trial proposes more, to cover slip); brake_delay_s: the loop's latency",
 )

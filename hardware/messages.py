@@ -108,6 +108,47 @@ class RangeBearing:
     bearing_rad: float
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class RangeBearings:
+    """Range [m] and bearing [rad, CCW from the robot's heading] to several landmarks seen
+    at one time (a sensor's whole frame): entry i is landmark_ids[i] at ranges_m[i],
+    bearings_rad[i]. An ID of −1 means the landmark's identity is unknown. The batched form
+    of `RangeBearing`: a localizer treats it exactly as the same observations arriving as
+    one RangeBearing message each with this time."""
+
+    t: float
+    landmark_ids: np.ndarray  # (n,) int64
+    ranges_m: np.ndarray  # (n,) float64
+    bearings_rad: np.ndarray  # (n,) float64
+
+    def __post_init__(self) -> None:
+        n = len(self.landmark_ids)
+        if len(self.ranges_m) != n or len(self.bearings_rad) != n:
+            raise ValueError(
+                f"RangeBearings at t={self.t}: {n} ids, {len(self.ranges_m)} ranges and "
+                f"{len(self.bearings_rad)} bearings (one each per landmark)"
+            )
+
+    def __len__(self) -> int:
+        return len(self.landmark_ids)
+
+    @classmethod
+    def of(cls, t: float, ids, ranges, bearings) -> RangeBearings:
+        """From any sequences, copied into read-only arrays."""
+
+        def frozen(a, dtype) -> np.ndarray:
+            out = np.array(a, dtype=dtype).reshape(-1)
+            out.flags.writeable = False
+            return out
+
+        return cls(
+            float(t),
+            frozen(ids, np.int64),
+            frozen(ranges, np.float64),
+            frozen(bearings, np.float64),
+        )
+
+
 @dataclass(frozen=True, slots=True)
 class VelocityOdometry:
     """Forward speed [m/s] and yaw rate [rad/s] commanded or measured from t onwards."""
@@ -221,6 +262,7 @@ Message = (
     | DepthFrame
     | TagDetections
     | RangeBearing
+    | RangeBearings
     | VelocityOdometry
     | GyroRate
     | LaserScan
@@ -237,6 +279,7 @@ MESSAGE_TYPES: tuple[type, ...] = (
     DepthFrame,
     TagDetections,
     RangeBearing,
+    RangeBearings,
     VelocityOdometry,
     GyroRate,
     LaserScan,

@@ -411,6 +411,7 @@ class GtsamSmoother(Localizer):
         self._k = np.array(config.slip.k_prior, dtype=float)
         self._delta_jk = np.zeros((3, 2))
         self._held: list[LandmarkObservation] = []  # align_observations: not yet placed
+        self._unflushed_t: float | None = None  # time of landmark factors not yet in iSAM2
         if config.scan_matching:
             self.counts.update(
                 scans_kept=0,
@@ -425,6 +426,8 @@ class GtsamSmoother(Localizer):
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
+        if self._unflushed_t is not None and msg.t != self._unflushed_t:
+            self._flush()
         inc = self.odometry.increment(msg)
         if inc is not None:
             for obs in self._held:  # observations made since the last odometry message
@@ -460,11 +463,12 @@ class GtsamSmoother(Localizer):
             self._integrate(inc.ds, inc.dtheta, inc.cov)
 
     def _place_held(self) -> None:
-        """Observations still waiting for the odometry after them (align_observations),
-        placed at the latest pose: an output is asked for."""
+        """An output is asked for: observations still waiting for the odometry after them
+        (align_observations) placed at the latest pose, and every factor added."""
         for obs in self._held:
             self._observe(obs)
         self._held = []
+        self._flush()
 
     def _start(self, t: float) -> None:
         c = self.config
@@ -618,7 +622,10 @@ class GtsamSmoother(Localizer):
                 guess = self._kf_pose[:2] + r * np.array([math.cos(a), math.sin(a)])
                 self._values.insert(L(lid), gtsam.Point2(*guess))
             self.counts["landmark_factors"] += 1
-        self._flush()
+        # one iSAM2 update for all observations of one time, however many messages bring
+        # them (one per landmark, as MRCLAM, or one per frame): at the next message of
+        # another time, keyframe, or output
+        self._unflushed_t = obs.t
 
     def _tag_factor(self, lid: int, q: np.ndarray, r: float, b: float, sr: float, psi: float):
         """BetweenFactorPose2 keyframe → tag T(lid) seen at q (keyframe frame), range r,
@@ -825,6 +832,7 @@ class GtsamSmoother(Localizer):
         return True
 
     def _flush(self) -> None:
+        self._unflushed_t = None
         if self._graph.size() == 0 and self._values.size() == 0:
             return
         result = self.isam.update(self._graph, self._values)
@@ -848,6 +856,7 @@ class GtsamSmoother(Localizer):
 
     # -- outputs ----------------------------------------------------------------------
     def estimate(self) -> PoseEstimate:
+        self._flush()  # (held observations wait for their odometry: align_observations)
         t = self._t if self._t is not None else float("nan")
         if self._kf < 0:
             return PoseEstimate(t, np.array(self.config.initial_pose, float), np.zeros((3, 3)))

@@ -21,7 +21,7 @@ import numpy as np
 from hardware.calibration import Mount, WalkerCalibration
 from hardware.choices import Choice
 from hardware.geometry import wrap_angle
-from hardware.messages import Message, RangeBearing, TagDetections
+from hardware.messages import Message, RangeBearing, RangeBearings, TagDetections
 
 # Default landmark noise of the localizers: range σ = RANGE_SIGMA_M + RANGE_SIGMA_FRAC·r,
 # bearing σ = BEARING_SIGMA_RAD. They describe an AprilTag camera (the walker's tag
@@ -163,6 +163,8 @@ def landmark_observation(
         return tag_observations(msg, calibration) if msg.detections else None
     if isinstance(msg, RangeBearing):
         return range_bearing_observation(msg)
+    if isinstance(msg, RangeBearings):
+        return range_bearings_observation(msg) if len(msg) else None
     return None
 
 
@@ -172,4 +174,13 @@ def range_bearing_observation(msg: RangeBearing) -> LandmarkObservation:
         np.array([msg.landmark_id]),
         np.array([[msg.range_m, wrap_angle(msg.bearing_rad)]]),
         np.array([np.nan]),
+    )
+
+
+def range_bearings_observation(msg: RangeBearings) -> LandmarkObservation:
+    return LandmarkObservation(
+        msg.t,
+        np.asarray(msg.landmark_ids, dtype=int),
+        np.stack([msg.ranges_m, wrap_angle(msg.bearings_rad)], axis=-1),
+        np.full(len(msg), np.nan),
     )

@@ -44,6 +44,7 @@ command stream). A topic holds a single message type.
     /depth/image/exact         companion        json / walker.DepthFrameExact
     /tags/detections         TagDetections      json / walker.TagDetections
     /range_bearing           RangeBearing       json / walker.RangeBearing
+    /range_bearings          RangeBearings      json / walker.RangeBearings
     /odometry/velocity       VelocityOdometry   json / walker.VelocityOdometry
     /imu/gyro                GyroRate           json / walker.GyroRate
     /scan                    LaserScan          protobuf / foxglove.LaserScan
@@ -83,6 +84,9 @@ JSON integers. Units are SI. Schemas (all fields required):
     walker.BrakeCommand       t [s], left_nm, right_nm [N·m commanded torque], source [str]
     walker.RangeBearing       t [s], landmark_id [int], range_m [m],
                               bearing_rad [rad, CCW from the robot heading]
+    walker.RangeBearings      t [s], landmark_ids [list of int, −1: unknown], ranges_m [list,
+                              m], bearings_rad [list, rad]: entry i of each list is one
+                              landmark seen at t (the batched form of RangeBearing)
     walker.VelocityOdometry   t [s], v [m/s forward], omega [rad/s yaw rate]
     walker.GyroRate           t [s], rate_rad_s [rad/s: the gyro's z rate, CCW positive, raw
                               (its bias and scale error included), the mean over the

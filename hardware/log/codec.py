@@ -25,6 +25,7 @@ from hardware.log.schemas import (
     LASER_SCAN,
     POSE_EXACT,
     POSE_IN_FRAME,
+    RANGE_BEARINGS,
     RAW_IMAGE,
     SCAN_EXACT,
     TAG_DETECTIONS,
@@ -46,6 +47,7 @@ from hardware.messages import (
     Message,
     PositionFix,
     RangeBearing,
+    RangeBearings,
     TagDetection,
     TagDetections,
     VelocityOdometry,
@@ -185,6 +187,28 @@ def _dec_tags(obj: Any, ns: int, comp: Companions) -> TagDetections:
         for d in obj["detections"]
     )
     return TagDetections(float(obj["t"]), dets)
+
+
+# --------------------------------------------------------------------------- range-bearing frames
+
+
+def _enc_range_bearings(msg: RangeBearings, ns: int) -> list[bytes]:
+    obj = {
+        "t": float(msg.t),
+        "landmark_ids": [int(i) for i in msg.landmark_ids],
+        "ranges_m": _jarr(msg.ranges_m),
+        "bearings_rad": _jarr(msg.bearings_rad),
+    }
+    return [dumps(obj)]
+
+
+def _dec_range_bearings(obj: Any, ns: int, comp: Companions) -> RangeBearings:
+    def floats(key: str) -> list[float]:
+        return [float(x) for x in obj[key]]  # float("NaN") reads the non-finite strings
+
+    return RangeBearings.of(
+        obj["t"], [int(i) for i in obj["landmark_ids"]], floats("ranges_m"), floats("bearings_rad")
+    )
 
 
 # --------------------------------------------------------------------------- depth frames
@@ -366,6 +390,14 @@ CODECS: dict[type, Codec] = {
             ),
         ),
         Codec(TagDetections, "/tags/detections", TAG_DETECTIONS, _enc_tags, _json, _dec_tags),
+        Codec(
+            RangeBearings,
+            "/range_bearings",
+            RANGE_BEARINGS,
+            _enc_range_bearings,
+            _json,
+            _dec_range_bearings,
+        ),
         Codec(
             LaserScan,
             "/scan",

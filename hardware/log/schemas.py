@@ -99,6 +99,16 @@ TAG_DETECTIONS = json_schema(
         ),
     },
 )
+RANGE_BEARINGS = json_schema(
+    "walker.RangeBearings",
+    "Range and bearing to several landmarks seen at one time; entry i of each array is one.",
+    {
+        "t": T_PROP,
+        "landmark_ids": prop("array", "landmark IDs, -1 when unknown", items={"type": "integer"}),
+        "ranges_m": prop("array", "ranges [m]", items=_NUMBERS),
+        "bearings_rad": prop("array", "bearings [rad], CCW from the robot heading", items=_NUMBERS),
+    },
+)
 DEPTH_EXACT = json_schema(
     "walker.DepthFrameExact", "Exact time of the depth frame on the main topic.", {"t": T_PROP}
 )

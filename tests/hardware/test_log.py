@@ -47,6 +47,7 @@ from hardware.messages import (
     GyroRate,
     LaserScan,
     RangeBearing,
+    RangeBearings,
     TagDetection,
     TagDetections,
     VelocityOdometry,
@@ -106,6 +107,10 @@ def every_message(rng: np.random.Generator) -> list[Any]:
             ),
         ),
         RangeBearing(0.5, 3, 2.0000000000000004, -math.pi),
+        RangeBearings.of(0.55, [], [], []),
+        RangeBearings.of(
+            0.56, [4, -1, 2**40], [1 / 3, math.inf, 0.0], [-math.pi, math.nan, 1e-300]
+        ),
         VelocityOdometry(0.6, -0.25, math.inf),
         LaserScan(0.7, -math.pi, 2 * math.pi / 360, scan, 3.5),
         LaserScan(0.71, 0.1, 0.7 / 3, rng.uniform(0, 2, 5), math.inf),
@@ -144,10 +149,10 @@ def test_every_message_type_round_trips_exactly(tmp_path: Path) -> None:
     assert len(got) == len(msgs)
     for a, b in zip(msgs, got, strict=True):
         assert_same(a, b)
-    scan = got[8]
+    scan = got[10]
     assert abs(scan.angle_increment - 2 * math.pi / 360) < 1e-12
     assert np.isnan(scan.ranges[4]) and np.isposinf(scan.ranges[3])
-    assert not got[13].depth_mm.flags.writeable  # messages are immutable
+    assert not got[15].depth_mm.flags.writeable  # messages are immutable
 
 
 def test_custom_topic_keeps_streams_apart(tmp_path: Path) -> None:
@@ -268,6 +273,7 @@ def test_plain_mcap_reader_sees_standard_schemas(tmp_path: Path) -> None:
         "/brakes/command": ("walker.BrakeCommand", "json", "jsonschema"),
         "/tags/detections": ("walker.TagDetections", "json", "jsonschema"),
         "/range_bearing": ("walker.RangeBearing", "json", "jsonschema"),
+        "/range_bearings": ("walker.RangeBearings", "json", "jsonschema"),
         "/odometry/velocity": ("walker.VelocityOdometry", "json", "jsonschema"),
         "/collisions": ("walker.Collision", "json", "jsonschema"),
         "/depth/image": ("foxglove.RawImage", "protobuf", "protobuf"),
@@ -305,7 +311,7 @@ def test_plain_mcap_reader_sees_standard_schemas(tmp_path: Path) -> None:
         ("16UC1", "depth_optical", 160, 120),
         ("16UC1", "depth_optical", 640, 480),
     ]
-    first_depth = msgs[13].depth_mm
+    first_depth = msgs[15].depth_mm
     assert np.array_equal(np.frombuffer(images[0].data, "<u2").reshape(120, 160), first_depth)
     scan = next(d for d in decoded if d.channel.topic == "/scan")
     assert scan.decoded_message.start_angle == -math.pi

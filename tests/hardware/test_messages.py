@@ -3,7 +3,14 @@
 import numpy as np
 import pytest
 
-from hardware.messages import CameraIntrinsics, DepthFrame, EncoderTicks, VelocityOdometry, merge
+from hardware.messages import (
+    CameraIntrinsics,
+    DepthFrame,
+    EncoderTicks,
+    RangeBearings,
+    VelocityOdometry,
+    merge,
+)
 
 
 def test_merge_orders_by_time_and_keeps_source_order_on_ties():
@@ -48,3 +55,13 @@ def test_intrinsics_from_fov():
     k = CameraIntrinsics.from_fov(160, 120, np.radians(57), np.radians(43))
     assert 2 * np.degrees(np.arctan(80 / k.fx)) == pytest.approx(57)
     assert k.matrix[0, 2] == pytest.approx(79.5)
+
+
+def test_range_bearings_hold_one_entry_per_landmark():
+    ids = [3, -1]
+    m = RangeBearings.of(1.5, ids, [2.0, 4.5], (0.1, -0.2))
+    ids[0] = 9  # a copy: the message does not change with its source
+    assert len(m) == 2 and m.landmark_ids.tolist() == [3, -1] and m.landmark_ids.dtype == np.int64
+    assert not m.ranges_m.flags.writeable
+    with pytest.raises(ValueError, match=r"RangeBearings at t=1.5: 2 ids, 1 ranges and 2 bearings"):
+        RangeBearings.of(1.5, [3, 4], [2.0], [0.1, 0.2])
