@@ -310,6 +310,7 @@ class GridRbpf(ParticleFilter):
     def trajectory(self) -> Trajectory:
         """The whole path of the most probable particle, read back through resampling,
         with each frame's correction spread over the odometry before it (module doc)."""
+        self._use_held()
         if not self.track:
             return self.track.trajectory()
         key = (self.revision, self.track.last_t)

@@ -344,6 +344,7 @@ class ParticleFilter(Localizer):
         self.track = TrajectoryRecorder()
         self._resample_due = False  # weights changed since the last resampling check
         self._obs_t = -math.inf  # time of the observations weighted in since then
+        self._held: LandmarkObservation | None = None  # landmark sightings not used yet
         self.revises_past = config.smoother != "none"
         self.paths = ParticlePaths(config.path_snapshot_s)
         self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
@@ -370,12 +371,17 @@ class ParticleFilter(Localizer):
 
     # -- inputs ---------------------------------------------------------------------------
     def process(self, msg: Message) -> None:
-        inc = self.odometry.increment(msg)
+        obs = landmark_observation(msg, self.calibration)
+        if self._held is not None and (obs is None or obs.t != self._held.t):
+            self._use_held()
+        inc = None if obs is not None else self.odometry.increment(msg)
         if inc is not None:
             self._predict(inc)
             self._record(msg.t)
-        elif (obs := landmark_observation(msg, self.calibration)) is not None:
-            self._observe_landmarks(obs)
+        elif obs is not None:
+            # held until a message of another kind or time, or an output: the sightings
+            # of one time weigh the particles once, however many messages bring them
+            self._held = obs if self._held is None else _joined(self._held, obs)
         elif (fix := absolute_observation(msg, self.pf.absolute)) is not None:
             self._observe_absolute(fix)
         elif isinstance(msg, DepthFrame | LaserScan):
@@ -416,6 +422,11 @@ class ParticleFilter(Localizer):
             f, g = increment_jacobians(float(self._delta[2]), inc.ds, inc.dtheta)
             self._delta = apply_increment(self._delta, inc.ds, inc.dtheta)
             self._delta_cov = f @ self._delta_cov @ f.T + g @ inc.cov @ g.T
+
+    def _use_held(self) -> None:
+        if self._held is not None:
+            held, self._held = self._held, None
+            self._observe_landmarks(held)
 
     def _observe_landmarks(self, obs: LandmarkObservation) -> None:
         if not len(obs):
@@ -637,11 +648,13 @@ class ParticleFilter(Localizer):
     @property
     def weights(self) -> np.ndarray:
         """Normalised particle weights (N,)."""
+        self._use_held()
         return self._weights.copy()
 
     @property
     def n_eff(self) -> float:
         """Effective sample size 1/Σw²."""
+        self._use_held()
         return 1.0 / float(np.dot(self._weights, self._weights))
 
     # -- outputs -------------------------------------------------------------------------
@@ -678,11 +691,13 @@ class ParticleFilter(Localizer):
             self.paths.snapshot(t, self.particles)
 
     def estimate(self) -> PoseEstimate:
+        self._use_held()
         mean, cov = self._moments()
         return PoseEstimate(self.track.last_t, mean, cov)
 
     def trajectory(self) -> Trajectory:
         """The smoothed path (config.smoother) or the filtered means."""
+        self._use_held()
         if not self.revises_past or not self.track:
             return self.track.trajectory()
         key = (self.revision, self.track.last_t)
@@ -702,6 +717,7 @@ class ParticleFilter(Localizer):
         return self._path_cache[1]
 
     def diagnostics(self) -> dict:
+        self._use_held()
         notes = {**self.counts, **self.odometry.diagnostics()}
         notes["particles"] = len(self.particles)
         c = self.counts
@@ -709,6 +725,16 @@ class ParticleFilter(Localizer):
         if c["landmark_observations"] == 0 and c["scan_updates"] == 0 and absolute == 0:
             notes["note"] = ODOMETRY_ONLY_NOTE
         return notes
+
+
+def _joined(a: LandmarkObservation, b: LandmarkObservation) -> LandmarkObservation:
+    """The sightings of two observations of one time, as one."""
+    return LandmarkObservation(
+        a.t,
+        np.concatenate([a.ids, b.ids]),
+        np.concatenate([a.z, b.z]),
+        np.concatenate([a.yaw, b.yaw]),
+    )
 
 
 SPEC = Spec(
