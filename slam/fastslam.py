@@ -1,7 +1,9 @@
 """FastSLAM 1.0 and 2.0 with known data association (thesis Appendix A; Montemerlo et al.).
 
 Each of N particles holds a walker pose and, per landmark, a small EKF (mean and
-covariance). Everything is stored as arrays and updated for all particles at once:
+covariance). Everything is stored as arrays; the motion is numpy on all particles at
+once, the observation step one compiled loop per stage (slam.fastslam_kernels: at 100
+particles numpy's per-call cost was most of the step):
 
     poses        (N, 3)        x, y, θ
     log_weights  (N,)          normalised (logsumexp = 0)
@@ -75,6 +77,7 @@ from hardware.choices import coerce
 from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
+from slam import fastslam_kernels as kernels
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
@@ -105,17 +108,11 @@ __all__ = [
     "FastSlamConfig",
     "landmark_from_tag_pose",
     "landmark_from_tag_pose_jacobians",
-    "predict_observations",
     "propagate_linearised",
-    "proposal_update",
     "systematic_resample",
     "tag_pose",
     "tag_pose_jacobians",
 ]
-
-# an observation used in an update: landmark column, z, its noise R, and the particles
-# that had seen the landmark before this message (None: none had)
-_Used = tuple[int, np.ndarray, np.ndarray, "np.ndarray | None"]
 
 # 99.9 % quantiles of χ² with 2 and 3 degrees of freedom (scipy.stats.chi2.ppf(0.999, k)).
 CHI2_999 = {2: 13.815510557964274, 3: 16.26623619623813}
@@ -306,25 +303,6 @@ def propagate_linearised(
     return moved, p
 
 
-def proposal_update(
-    mean: np.ndarray, cov: np.ndarray, nu: np.ndarray, g_s: np.ndarray, q: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One observation folded into stacked pose Gaussians (the FastSLAM 2.0 proposal).
-
-    mean (N, 3), cov P (N, 3, 3) (may be singular), innovation ν (N, m), G_s (N, m, 3),
-    Q (N, m, m) → (μ, Σ, S) with S = G_s P G_sᵀ + Q, μ = mean + K ν, Σ = P − K S Kᵀ,
-    K = P G_sᵀ S⁻¹: by the matrix inversion lemma the same as Σ = [G_sᵀ Q⁻¹ G_s + P⁻¹]⁻¹,
-    μ = Σ G_sᵀ Q⁻¹ ν + mean (θ of μ is not wrapped here).
-    """
-    g_t = np.swapaxes(g_s, -1, -2)
-    pg = cov @ g_t
-    s = g_s @ pg + q
-    k = np.swapaxes(np.linalg.solve(s, np.swapaxes(pg, -1, -2)), -1, -2)  # S symmetric
-    mu = mean + np.einsum("nij,nj->ni", k, nu)
-    sigma = cov - k @ s @ np.swapaxes(k, -1, -2)
-    return mu, 0.5 * (sigma + np.swapaxes(sigma, -1, -2)), s
-
-
 def systematic_resample(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Indices drawn by systematic resampling of normalised `weights`.
 
@@ -339,78 +317,12 @@ def systematic_resample(weights: np.ndarray, rng: np.random.Generator) -> np.nda
     return np.minimum(np.searchsorted(cumulative, positions, side="right"), n - 1)
 
 
-def _psd_cholesky3(a: np.ndarray) -> np.ndarray:
-    """Lower Cholesky factors of stacked 3×3 positive semi-definite matrices (N, 3, 3).
-
-    Written out so that singular matrices (a walker standing still, a pose pinned by an
-    observation) need no jitter: a squared pivot below 1e-12 of the trace counts as zero and its
-    column is dropped, which is exact for a PSD matrix."""
-    tiny = 1e-12 * np.maximum(np.trace(a, axis1=1, axis2=2), 1e-300)
-
-    def div(x: np.ndarray, d: np.ndarray) -> np.ndarray:
-        return np.where(d > np.sqrt(tiny), x / np.where(d > 0, d, 1.0), 0.0)
-
-    l00 = np.sqrt(np.maximum(a[:, 0, 0], 0.0))
-    l10 = div(a[:, 1, 0], l00)
-    l20 = div(a[:, 2, 0], l00)
-    l11 = np.sqrt(np.maximum(a[:, 1, 1] - l10 * l10, 0.0))
-    l21 = div(a[:, 2, 1] - l20 * l10, l11)
-    l22 = np.sqrt(np.maximum(a[:, 2, 2] - l20 * l20 - l21 * l21, 0.0))
-    out = np.zeros_like(a)
-    out[:, 0, 0], out[:, 1, 0], out[:, 2, 0] = l00, l10, l20
-    out[:, 1, 1], out[:, 2, 1], out[:, 2, 2] = l11, l21, l22
-    return out
-
-
 def _cholesky2(cov: np.ndarray) -> np.ndarray:
     """Lower Cholesky factor of a 2×2 positive semi-definite matrix (zero rows allowed)."""
     a, b, d = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
     l00 = math.sqrt(max(a, 0.0))
     l10 = b / l00 if l00 > 0.0 else 0.0
     return np.array([[l00, 0.0], [l10, math.sqrt(max(d - l10 * l10, 0.0))]])
-
-
-def _log_normal(nu: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """log N(ν; 0, S) for stacked ν (N, m) and S (N, m, m)."""
-    m = nu.shape[-1]
-    maha = np.einsum("ni,ni->n", nu, np.linalg.solve(s, nu[..., None])[..., 0])
-    _, logdet = np.linalg.slogdet(s)
-    return -0.5 * (maha + logdet + m * math.log(2.0 * math.pi))
-
-
-def _rows(mask: np.ndarray) -> slice | np.ndarray:
-    """Index of the particles in `mask`: a slice when it is all of them (views, no copies)."""
-    return slice(None) if mask.all() else np.flatnonzero(mask)
-
-
-def predict_observations(
-    poses: np.ndarray, landmarks: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """ẑ, G_s, G_l for stacked poses (N, 3) and landmarks (N, D) in one pass.
-
-    D = 2: `range_bearing` and `range_bearing_jacobians`; D = 3: `tag_pose` and
-    `tag_pose_jacobians` (the same values, without their intermediate stacks: this runs
-    for every observation)."""
-    d = landmarks.shape[-1]
-    n = len(poses)
-    dx = landmarks[:, 0] - poses[:, 0]
-    dy = landmarks[:, 1] - poses[:, 1]
-    q = np.maximum(dx * dx + dy * dy, 1e-12)
-    r = np.sqrt(q)
-    zhat = np.empty((n, d))
-    zhat[:, 0] = np.hypot(dx, dy)
-    zhat[:, 1] = wrap_angle(np.arctan2(dy, dx) - poses[:, 2])
-    g_s = np.zeros((n, d, 3))
-    g_l = np.zeros((n, d, d))
-    g_l[:, 0, 0], g_l[:, 0, 1] = dx / r, dy / r
-    g_l[:, 1, 0], g_l[:, 1, 1] = -dy / q, dx / q
-    g_s[:, :2, :2] = -g_l[:, :2, :2]
-    g_s[:, 1, 2] = -1.0
-    if d == 3:
-        zhat[:, 2] = wrap_angle(landmarks[:, 2] - poses[:, 2])
-        g_s[:, 2, 2] = -1.0
-        g_l[:, 2, 2] = 1.0
-    return zhat, g_s, g_l
 
 
 def _symmetric(a: np.ndarray) -> np.ndarray:
@@ -496,29 +408,15 @@ class FastSlam(Localizer):
             return
         self.poses, self.pending = propagate_linearised(self.poses, self.pending, ds, dth, q)
 
-    def _noise(self, z: np.ndarray) -> np.ndarray:
+    def _noise(self, z: np.ndarray) -> list[float]:
+        """The variances of z's components (R is diagonal)."""
         c = self.config
         sr = c.range_sigma_m + c.range_sigma_frac * z[0]
         diag = [sr * sr, c.bearing_sigma_rad**2]
         if self.dim == 3:
             sy = c.yaw_sigma_rad + c.yaw_sigma_per_m2 * z[0] ** 2
             diag.append(sy * sy)
-        return np.diag(diag)
-
-    def _inverse(self, poses: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Landmark means and the Jacobian ∂l/∂z for new landmarks seen from `poses`."""
-        zz = np.broadcast_to(z, (len(poses), self.dim))
-        if self.dim == 3:
-            return landmark_from_tag_pose(poses, zz), landmark_from_tag_pose_jacobians(poses, zz)[1]
-        return (
-            landmark_from_range_bearing(poses, zz),
-            landmark_from_range_bearing_jacobians(poses, zz)[1],
-        )
-
-    def _innovation(self, z: np.ndarray, zhat: np.ndarray) -> np.ndarray:
-        nu = z - zhat
-        nu[:, 1:] = wrap_angle(nu[:, 1:])  # bearing (and yaw)
-        return nu
+        return diag
 
     def _column(self, lid: int) -> int:
         col = self.index.get(lid)
@@ -555,104 +453,37 @@ class FastSlam(Localizer):
         self._held_t = obs.t
         self.revision += 1  # the past will change when they are used
 
-    def _gated(self, nu: np.ndarray, s: np.ndarray, w: np.ndarray) -> bool:
-        """Whether ν is outside the gate of the weighted mixture of N(ν_i, S_i)."""
-        w = w / w.sum()
-        mean = w @ nu
-        d = nu - mean
-        c = np.einsum("n,nij->ij", w, s) + np.einsum("n,ni,nj->ij", w, d, d)
-        return float(mean @ np.linalg.solve(c, mean)) > self.gate
-
     def _update(self, items: list[tuple[int, np.ndarray]]) -> None:
-        """One message's landmark observations: FastSLAM's four steps."""
+        """The landmark observations of one time: FastSLAM's four steps (compiled:
+        slam.fastslam_kernels; the random draws here)."""
+        cols = np.array([self._column(lid) for lid, _ in items], dtype=np.int64)
+        z = np.array([zz for _, zz in items])
+        r = np.array([self._noise(zz) for _, zz in items])
+        v2 = self.config.version == 2
         logw = self.log_weights.copy()
-        used, mu, sigma = self._fold_known(items, logw)
-        if not used:
+        mu = self.poses.copy()
+        sigma = self.pending.copy() if v2 else self.pending
+        had_seen = np.empty((len(items), self.n), dtype=bool)
+        # 1. fold the observations of known landmarks into the proposal and the weights
+        used = kernels.fold(
+            mu, sigma, self.means, self.covs, self.seen, self._w, cols, z, r,
+            self.gate, self.config.weight_gain, v2, logw, had_seen,
+        )  # fmt: skip
+        self.counts["gated"] += int(np.sum(used == 0))
+        self.counts["updates"] += int(np.sum(used == 1))
+        if not used.any():
             return
-        if self.config.version == 2:
-            self._sample_poses(mu, sigma)
-        self._update_landmarks(used, logw)
-        self._normalise(logw)
+        if v2:  # 2. sample the poses from the proposal (1.0 sampled them with the motion)
+            kernels.sample(mu, sigma, self.rng.standard_normal((self.n, 3)), self.poses)
+            self.pending[:] = 0.0
+        # 3. landmark EKF updates at the sampled poses, new landmarks initialised
+        kernels.update_landmarks(
+            self.poses, self.means, self.covs, self.seen, cols, z, r, used, had_seen,
+            self.config.weight_gain, logw,
+        )  # fmt: skip
+        self._normalise(logw)  # 4.
         self.track.amend(self._mean_pose())
         self.revision += 1
-
-    def _fold_known(
-        self, items: list[tuple[int, np.ndarray]], logw: np.ndarray
-    ) -> tuple[list[_Used], np.ndarray, np.ndarray]:
-        """1. Fold the observations of known landmarks into the proposal (2.0) and the
-        weights (logw, in place); returns the observations used and the proposal."""
-        v2 = self.config.version == 2
-        mu, sigma = self.poses, self.pending
-        used: list[_Used] = []
-        for lid, z in items:
-            r = self._noise(z)
-            col = self._column(lid)
-            m = self.seen[:, col]
-            if not m.any():
-                used.append((col, z, r, None))  # new to every particle
-                continue
-            rows = _rows(m)
-            lc = self.covs[rows, col]
-            zhat, g_s, g_l = predict_observations(mu[rows], self.means[rows, col])
-            nu = self._innovation(z, zhat)
-            q = g_l @ lc @ np.swapaxes(g_l, 1, 2) + r
-            if v2:
-                mu_m, sig_m, s = proposal_update(mu[rows], sigma[rows], nu, g_s, q)
-            else:
-                s = q
-            if self._gated(nu, s, self._w[rows]):
-                self.counts["gated"] += 1
-                continue
-            if v2:
-                if isinstance(rows, slice):
-                    mu, sigma = mu_m, sig_m
-                else:
-                    mu, sigma = mu.copy(), sigma.copy()
-                    mu[rows], sigma[rows] = mu_m, sig_m
-                mu[:, 2] = wrap_angle(mu[:, 2])
-            logw[rows] += _log_normal(nu, s) / self.config.weight_gain
-            self.counts["updates"] += 1
-            used.append((col, z, r, m.copy()))
-        return used, mu, sigma
-
-    def _sample_poses(self, mu: np.ndarray, sigma: np.ndarray) -> None:
-        """2. Sample the poses from the proposal (2.0; 1.0 sampled them with the motion)."""
-        e = self.rng.standard_normal((self.n, 3))
-        poses = mu + np.einsum("nij,nj->ni", _psd_cholesky3(sigma), e)
-        poses[:, 2] = wrap_angle(poses[:, 2])
-        self.poses = poses
-        self.pending = np.zeros_like(self.pending)
-
-    def _update_landmarks(self, used: list[_Used], logw: np.ndarray) -> None:
-        """3. Landmark EKF updates at the sampled poses; new landmarks from the inverse
-        model; particles that met a landmark earlier in this message weighted now."""
-        for col, z, r, m in used:
-            seen = self.seen[:, col]
-            if seen.any():
-                rows = _rows(seen)
-                lm, lc = self.means[rows, col], self.covs[rows, col]
-                zhat, _, g_l = predict_observations(self.poses[rows], lm)
-                nu = self._innovation(z, zhat)
-                pg = lc @ np.swapaxes(g_l, 1, 2)
-                s = g_l @ pg + r
-                k = np.swapaxes(np.linalg.solve(s, np.swapaxes(pg, 1, 2)), 1, 2)
-                lm = lm + np.einsum("nij,nj->ni", k, nu)
-                if self.dim == 3:
-                    lm[:, 2] = wrap_angle(lm[:, 2])
-                self.means[rows, col] = lm
-                self.covs[rows, col] = _symmetric(lc - k @ s @ np.swapaxes(k, 1, 2))
-                fresh = seen if m is None else seen & ~m
-                if fresh.any():
-                    ln = np.zeros(self.n)
-                    ln[rows] = _log_normal(nu, s) / self.config.weight_gain
-                    logw[fresh] += ln[fresh]
-            new = ~seen
-            if new.any():
-                rows = _rows(new)
-                lm, j_z = self._inverse(self.poses[rows], z)
-                self.means[rows, col] = lm
-                self.covs[rows, col] = _symmetric(j_z @ r @ np.swapaxes(j_z, 1, 2))
-                self.seen[rows, col] = True
 
     def _normalise(self, logw: np.ndarray) -> None:
         """4. Normalise the weights; resample when they have degenerated."""

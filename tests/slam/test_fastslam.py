@@ -18,14 +18,13 @@ from hardware.messages import (
     TagDetection,
     TagDetections,
 )
+from slam import fastslam_kernels as kernels
 from slam.base import available, create
 from slam.fastslam import (
     FastSlamConfig,
     landmark_from_tag_pose,
     landmark_from_tag_pose_jacobians,
-    predict_observations,
     propagate_linearised,
-    proposal_update,
     systematic_resample,
     tag_pose,
     tag_pose_jacobians,
@@ -82,13 +81,22 @@ def test_tag_pose_model_jacobians_and_inverse(cases):
         )
 
 
-def test_fused_observation_model_equals_slam_measurement(cases):
+def predict(poses, landmarks):
+    """The compiled observation model, particle by particle."""
+    n, d = landmarks.shape
+    zhat, g_s, g_l = np.empty((n, d)), np.empty((n, d, 3)), np.empty((n, d, d))
+    for i in range(n):
+        kernels._predict(poses[i], landmarks[i], d, zhat[i], g_s[i], g_l[i])
+    return zhat, g_s, g_l
+
+
+def test_compiled_observation_model_equals_slam_measurement(cases):
     poses, tags = cases
-    zhat, g_s, g_l = predict_observations(poses, tags[:, :2])
+    zhat, g_s, g_l = predict(poses, tags[:, :2].copy())
     assert np.allclose(zhat, range_bearing(poses, tags[:, :2]))
     ref_s, ref_l = range_bearing_jacobians(poses, tags[:, :2])
     assert np.allclose(g_s, ref_s) and np.allclose(g_l, ref_l)
-    zhat, g_s, g_l = predict_observations(poses, tags)
+    zhat, g_s, g_l = predict(poses, tags)
     assert np.allclose(zhat, tag_pose(poses, tags))
     ref_s, ref_l = tag_pose_jacobians(poses, tags)
     assert np.allclose(g_s, ref_s) and np.allclose(g_l, ref_l)
@@ -108,50 +116,91 @@ def test_linearised_propagation_equals_slam_motion(ds, dtheta):
         assert np.allclose(p[i], f @ pending[i] @ f.T + g @ q @ g.T)
 
 
-def test_proposal_is_the_fastslam2_gaussian_and_sequential_equals_joint():
-    """Kalman form = the information form of EQUATIONS.md (Appendix A) for an invertible P;
-    two observations folded in one after another = both at once (block-diagonal noise)."""
+def fold_one(poses, p, lm, lc, z, r, seen=None, gate=1e9, proposal=True):
+    """kernels.fold of one observation of landmark column 0 → (used, μ, Σ, Δ log w)."""
+    n = len(lm)
+    mu, sigma, logw = poses.copy(), p.copy(), np.zeros(n)
+    seen = np.ones((n, 1), bool) if seen is None else seen[:, None]
+    had = np.empty((1, n), bool)
+    used = kernels.fold(
+        mu, sigma, lm[:, None].copy(), lc[:, None].copy(), seen, np.full(n, 1.0 / n),
+        np.zeros(1, np.int64), z[None], r[None], gate, 1.0, proposal, logw, had,
+    )  # fmt: skip
+    assert np.array_equal(had[0], seen[:, 0])
+    return int(used[0]), mu, sigma, logw
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_compiled_proposal_is_the_fastslam2_gaussian(cases, d):
+    """The Kalman form of the kernel = the information form of EQUATIONS.md (Appendix A)
+    for an invertible P, with Q = G_l Σ_l G_lᵀ + R; the weight is N(ν; 0, G_s P G_sᵀ + Q)."""
     rng = np.random.default_rng(5)
-    n = 6
+    poses, tags = cases
+    n = len(poses)
+    lm = tags[:, :d].copy()
     a = rng.normal(size=(n, 3, 3)) * 0.1
     p = a @ a.transpose(0, 2, 1) + 1e-3 * np.eye(3)
-    s_hat = rng.normal(size=(n, 3))
-    g1, g2 = rng.normal(size=(n, 2, 3)), rng.normal(size=(n, 2, 3))
-    b = rng.normal(size=(n, 2, 2)) * 0.1
-    q1 = b @ b.transpose(0, 2, 1) + 0.01 * np.eye(2)
-    q2 = np.broadcast_to(np.diag([0.02, 0.03]), (n, 2, 2))
-    nu1, nu2 = rng.normal(size=(n, 2)) * 0.1, rng.normal(size=(n, 2)) * 0.1
-
-    mu, sigma, s = proposal_update(s_hat, p, nu1, g1, q1)
+    b = rng.normal(size=(n, d, d)) * 0.1
+    lc = b @ b.transpose(0, 2, 1) + 0.01 * np.eye(d)
+    r = np.array([0.02, 0.003, 0.05][:d])
+    model = tag_pose if d == 3 else range_bearing
+    jac = tag_pose_jacobians if d == 3 else range_bearing_jacobians
+    z = model(poses[0], lm[0]) + 0.05  # the first particle's view, off a little
+    used, mu, sigma, dlogw = fold_one(poses, p, lm, lc, z, r)
+    assert used == 1
     for i in range(n):
-        q_inv = np.linalg.inv(q1[i])
-        sig_ref = np.linalg.inv(g1[i].T @ q_inv @ g1[i] + np.linalg.inv(p[i]))
-        assert np.allclose(sigma[i], sig_ref)
-        assert np.allclose(mu[i], sig_ref @ g1[i].T @ q_inv @ nu1[i] + s_hat[i])
-        assert np.allclose(s[i], g1[i] @ p[i] @ g1[i].T + q1[i])
+        g_s, g_l = jac(poses[i], lm[i])
+        q = g_l @ lc[i] @ g_l.T + np.diag(r)
+        nu = z - model(poses[i], lm[i])
+        nu[1:] = (nu[1:] + np.pi) % (2 * np.pi) - np.pi
+        q_inv = np.linalg.inv(q)
+        sig_ref = np.linalg.inv(g_s.T @ q_inv @ g_s + np.linalg.inv(p[i]))
+        mu_ref = sig_ref @ g_s.T @ q_inv @ nu + poses[i]
+        mu_ref[2] = (mu_ref[2] + np.pi) % (2 * np.pi) - np.pi
+        assert np.allclose(sigma[i], sig_ref, atol=1e-12)
+        assert np.allclose(mu[i], mu_ref, atol=1e-12)
+        s = g_s @ p[i] @ g_s.T + q
+        log_n = -0.5 * (
+            nu @ np.linalg.solve(s, nu) + np.log(np.linalg.det(s)) + d * np.log(2 * np.pi)
+        )
+        assert dlogw[i] == pytest.approx(log_n, abs=1e-9)
+    # a singular P (standing still) leaves the poses where they are
+    _, mu0, sigma0, _ = fold_one(poses, np.zeros((n, 3, 3)), lm, lc, z, r)
+    assert np.allclose(mu0, poses) and np.allclose(sigma0, 0.0)
+    # FastSLAM 1.0: only the weights; particles that had not seen it untouched
+    seen = np.arange(n) % 2 == 0
+    _, mu1, _, dlogw1 = fold_one(poses, p, lm, lc, z, r, seen=seen, proposal=False)
+    assert np.array_equal(mu1, poses) and np.all(dlogw1[~seen] == 0) and np.all(dlogw1[seen] != 0)
+    # the gate: ν̄ᵀ C⁻¹ ν̄ of the particles' mixture, C = mean S_i + spread of the ν_i
+    nus, ss = [], []
+    for i in range(n):
+        g_s, g_l = jac(poses[i], lm[i])
+        nu = z - model(poses[i], lm[i])
+        nus.append(np.concatenate([nu[:1], (nu[1:] + np.pi) % (2 * np.pi) - np.pi]))
+        ss.append(g_s @ p[i] @ g_s.T + g_l @ lc[i] @ g_l.T + np.diag(r))
+    nus = np.array(nus)
+    nu_bar = nus.mean(axis=0)
+    c = np.mean(ss, axis=0) + (nus - nu_bar).T @ (nus - nu_bar) / n
+    maha = nu_bar @ np.linalg.solve(c, nu_bar)
+    used, mu_g, _, dlogw_g = fold_one(poses, p, lm, lc, z, r, gate=maha * (1 - 1e-9))
+    assert used == 0 and np.array_equal(mu_g, poses) and np.all(dlogw_g == 0)
+    assert fold_one(poses, p, lm, lc, z, r, gate=maha * (1 + 1e-9))[0] == 1
 
-    # linear model: the second innovation is taken at the refined mean
-    nu2_at_mu = nu2 - np.einsum("nij,nj->ni", g2, mu - s_hat)
-    mu2, sigma2, _ = proposal_update(mu, sigma, nu2_at_mu, g2, q2)
-    g = np.concatenate([g1, g2], axis=1)
-    q = np.zeros((n, 4, 4))
-    q[:, :2, :2], q[:, 2:, 2:] = q1, q2
-    mu_j, sigma_j, _ = proposal_update(s_hat, p, np.concatenate([nu1, nu2], axis=1), g, q)
-    assert np.allclose(mu2, mu_j) and np.allclose(sigma2, sigma_j)
 
-    # a singular P (standing still) leaves the pose where it is
-    mu0, sigma0, s0 = proposal_update(s_hat, np.zeros((n, 3, 3)), nu1, g1, q1)
-    assert np.allclose(mu0, s_hat) and np.allclose(sigma0, 0.0) and np.allclose(s0, q1)
-
-
-def test_psd_cholesky_handles_singular_covariances():
-    from slam.fastslam import _psd_cholesky3
-
+def test_compiled_sample_handles_singular_covariances():
+    """μ + L e with L L^T = Σ for PSD Σ, a zero pivot and a zero matrix included."""
     rng = np.random.default_rng(4)
     a = rng.normal(size=(4, 3, 2))  # rank 2
     mats = np.concatenate([a @ a.transpose(0, 2, 1), np.zeros((1, 3, 3)), np.eye(3)[None]])
     mats[1, 0, :] = mats[1, :, 0] = 0.0  # a zero first pivot
-    low = _psd_cholesky3(mats)
+    n = len(mats)
+    low = np.empty((n, 3, 3))
+    for k in range(3):  # column k of L: the sample at e = unit vector k, from μ = 0
+        out = np.empty((n, 3))
+        e = np.zeros((n, 3))
+        e[:, k] = 1.0
+        kernels.sample(np.zeros((n, 3)), mats, e, out)
+        low[:, :, k] = out
     assert np.all(np.isfinite(low)) and np.allclose(np.triu(low, 1), 0.0)
     assert np.allclose(low @ low.transpose(0, 2, 1), mats, atol=1e-9)
 
