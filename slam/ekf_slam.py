@@ -16,16 +16,15 @@ slip-corrected arc and k by its random walk, and the tag updates correct both.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
-from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
+from slam import ekf_kernels as kernels
 from slam.absolute import (
     AbsoluteConfig,
     AbsoluteObservation,
@@ -38,9 +37,9 @@ from slam.measurement import (
     RANGE_SIGMA_FRAC,
     RANGE_SIGMA_M,
     LandmarkObservation,
+    Sightings,
     landmark_from_range_bearing,
     landmark_from_range_bearing_jacobians,
-    landmark_observation,
 )
 from slam.motion import Cov3, Increment, MotionNoise, OdometryModel, propagate, split_increment
 from slam.rts import arc_steps, rts_smooth
@@ -113,6 +112,7 @@ class EkfSlam(Localizer):
         self._pose = tuple(float(v) for v in self._x[:3])
         self._cov3 = tuple(tuple(r) for r in self._P[:3, :3].tolist())
         self._cross = [0.0, 0.0]
+        self._stale = True  # the full state lags the pose predicted since the last sync
         self.index: dict[int, int] = {}  # landmark id → state offset
         self.counts = {"updates": 0, "new_landmarks": 0, "gated": 0, "without_id": 0}
         if config.absolute.enabled:
@@ -127,11 +127,15 @@ class EkfSlam(Localizer):
         self._inc = [0.0, 0.0, 0.0, 0.0, 0.0]
         self._path_cache: tuple[tuple[int, int], Trajectory] | None = None
         self._held: list[LandmarkObservation] = []  # align_observations: not yet used
+        self.sightings = Sightings(calibration)
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
-        inc = self.odometry.increment(msg)
-        if inc is not None:
+        if (obs := self.sightings.offer(msg)) is not None:
+            self._sighted(obs)
+        if self.sightings.taken:
+            pass  # held, to be used with the other sightings of its time
+        elif (inc := self.odometry.increment(msg)) is not None:
             for obs in self._held:  # observations made since the last odometry message
                 part, inc = split_increment(inc, obs.t)
                 self._move(part)
@@ -139,15 +143,17 @@ class EkfSlam(Localizer):
             self._held = []
             self._move(inc)
             self._record(msg.t)
-        elif (obs := landmark_observation(msg, self.calibration)) is not None:
-            if self.config.align_observations and self.track and obs.t > self.track.last_t:
-                self._held.append(obs)  # placed when the next odometry message spans it
-            else:
-                self._observe(obs)
         elif (fix := absolute_observation(msg, self.config.absolute)) is not None:
             self._absolute(fix)
         if not self.track and self.odometry.has_odometry:
             self._record(msg.t)
+
+    def _sighted(self, obs: LandmarkObservation) -> None:
+        """The landmark sightings of one time (slam.measurement.Sightings)."""
+        if self.config.align_observations and self.track and obs.t > self.track.last_t:
+            self._held.append(obs)  # placed when the next odometry message spans it
+        else:
+            self._observe(obs)
 
     def _move(self, inc: Increment) -> None:
         if self._slip:
@@ -156,6 +162,7 @@ class EkfSlam(Localizer):
             self._predict(inc.ds, inc.dtheta, inc.cov)
 
     def _predict(self, ds: float, dth: float, q: np.ndarray) -> None:
+        self._stale = True
         self._pose, self._cov3, (a, b) = propagate(self._pose, self._cov3, ds, dth, q)
         self._cross[0] += a
         self._cross[1] += b
@@ -172,6 +179,7 @@ class EkfSlam(Localizer):
         """The prediction with slip estimation: pose and k together (slam.slip), and the
         deferred cross-covariance of the pose with the landmarks, now
         P_pose,l ← F P_pose,l + F_k P_k,l (k's rows with the landmarks do not move)."""
+        self._stale = True
         c = self.config
         step = predict_with_slip(
             np.array(self._pose),
@@ -192,6 +200,9 @@ class EkfSlam(Localizer):
 
     def _sync(self) -> None:
         """Bring the full state up to date with the predictions since the last update."""
+        if not self._stale:
+            return
+        self._stale = False
         self._x[:3] = self._pose
         p = self._P
         n = 5 if self._slip else 3  # where the landmarks start
@@ -281,38 +292,13 @@ class EkfSlam(Localizer):
 
     def _update(self, j: int, z: np.ndarray, amend: bool = True) -> None:
         """The Kalman update by a range-bearing observation z of the landmark at state
-        index j, in closed form: H has a pose block G_s and the landmark's block G_l
-        (`slam.measurement.range_bearing_jacobians`), both from (dx, dy), so P Hᵀ is
-        two combinations of five columns of P and S a 2×2 (issue 13: numpy's per-call
-        overhead, not the arithmetic, was the cost of the general form)."""
-        x, p = self._x, self._P
-        dx, dy = float(x[j] - x[0]), float(x[j + 1] - x[1])
-        q = max(dx * dx + dy * dy, 1e-12)
-        r = math.sqrt(q)
-        # G_l = [[a, b], [c, d]]; G_s = [−G_l | (0, −1)ᵀ]
-        a, b, c, d = dx / r, dy / r, -dy / q, dx / q
-        pj, pj1 = p[:, j] - p[:, 0], p[:, j + 1] - p[:, 1]
-        pht = np.empty((len(x), 2))
-        pht[:, 0] = a * pj + b * pj1
-        pht[:, 1] = c * pj + d * pj1 - p[:, 2]
-        hj, hj1 = pht[j] - pht[0], pht[j + 1] - pht[1]
+        index j, in closed form and compiled (slam.ekf_kernels), unless gated."""
         var_r, var_b = self._variances(float(z[0]))
-        s00 = a * hj[0] + b * hj1[0] + var_r
-        s01 = a * hj[1] + b * hj1[1]
-        s10 = c * hj[0] + d * hj1[0] - pht[2, 0]
-        s11 = c * hj[1] + d * hj1[1] - pht[2, 1] + var_b
-        nu0 = float(z[0]) - r
-        nu1 = math.remainder(float(z[1]) - math.atan2(dy, dx) + float(x[2]), 2.0 * math.pi)
-        det = s00 * s11 - s01 * s10
-        i00, i01, i10, i11 = s11 / det, -s01 / det, -s10 / det, s00 / det
-        m0, m1 = i00 * nu0 + i01 * nu1, i10 * nu0 + i11 * nu1  # S⁻¹ ν
-        if nu0 * m0 + nu1 * m1 > self.config.gate_chi2:
+        z0, z1, gate = float(z[0]), float(z[1]), self.config.gate_chi2
+        if not kernels.range_bearing_update(self._x, self._P, j, z0, z1, var_r, var_b, gate):
             self.counts["gated"] += 1
             return
-        k = np.empty_like(pht)  # K = P Hᵀ S⁻¹
-        k[:, 0] = pht[:, 0] * i00 + pht[:, 1] * i10
-        k[:, 1] = pht[:, 0] * i01 + pht[:, 1] * i11
-        self._apply(k, pht, np.array([nu0, nu1]), amend)
+        self._corrected(amend)
         self.counts["updates"] += 1
 
     def _correct(self, pht: np.ndarray, s: np.ndarray, nu: np.ndarray, gate: float) -> bool:
@@ -321,17 +307,13 @@ class EkfSlam(Localizer):
         s_inv = np.linalg.inv(s)
         if float(nu @ s_inv @ nu) > gate:
             return False
-        self._apply(pht @ s_inv, pht, nu)
+        kernels.apply(self._x, self._P, pht @ s_inv, pht, nu)
+        self._corrected()
         return True
 
-    def _apply(self, k: np.ndarray, pht: np.ndarray, nu: np.ndarray, amend: bool = True) -> None:
-        """x += K ν and P −= K S Kᵀ, as K (P Hᵀ)ᵀ, symmetrised; amend: the trajectory's
-        latest pose takes the corrected pose (not for an observation placed inside an
-        odometry step, whose pose is not the latest)."""
-        self._x = self._x + k @ nu
-        self._x[2] = wrap_angle(self._x[2])
-        p = self._P - k @ pht.T
-        self._P = 0.5 * (p + p.T)
+    def _corrected(self, amend: bool = True) -> None:
+        """amend: the trajectory's latest pose takes the corrected pose (not for an
+        observation placed inside an odometry step, whose pose is not the latest)."""
         if amend:
             self.track.amend(tuple(self._x[:3].tolist()))
 
@@ -350,14 +332,19 @@ class EkfSlam(Localizer):
         self._inc = [0.0, 0.0, 0.0, 0.0, 0.0]
 
     def _place_held(self) -> None:
-        """Observations still waiting for the odometry after them (align_observations),
-        used at the latest pose: an output is asked for."""
+        """An output is asked for: the sightings not yet complete taken as they are, and
+        observations still waiting for the odometry after them (align_observations) used
+        at the latest pose."""
+        if (obs := self.sightings.take()) is not None:
+            self._sighted(obs)
         held, self._held = self._held, []
         for obs in held:
             self._observe(obs)
 
     # -- outputs ----------------------------------------------------------------------
     def estimate(self) -> PoseEstimate:
+        if (obs := self.sightings.take()) is not None:
+            self._sighted(obs)
         return PoseEstimate(self.track.last_t, np.array(self._pose), np.array(self._cov3))
 
     def trajectory(self) -> Trajectory:

@@ -42,8 +42,8 @@ noise R(z):
 
 Several observations of one time — in one message (a frame's tags), or in consecutive
 messages with the same timestamp (range-bearing datasets such as MRCLAM give each its
-own message: they are held until a message of another time or the next odometry, or
-until an output is asked for) — refine the proposal one after another (each
+own message: slam.measurement.Sightings holds them until a message of another time or
+kind, or until an output is asked for) — refine the proposal one after another (each
 linearised at the refined mean, each weighting the particle by its predictive density,
 whose product is the joint likelihood); then the pose is sampled once, every landmark
 seen is updated with an EKF step at the sampled pose, and new landmarks are initialised
@@ -85,9 +85,9 @@ from slam.measurement import (
     RANGE_SIGMA_M,
     LandmarkObservation,
     ObservationModel,
+    Sightings,
     landmark_from_range_bearing,
     landmark_from_range_bearing_jacobians,
-    landmark_observation,
     range_bearing,
     range_bearing_jacobians,
 )
@@ -365,8 +365,8 @@ class FastSlam(Localizer):
         self.revises_past = bool(config.smoothed_trajectory)
         self.paths = ParticlePaths(config.path_snapshot_s)
         self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
-        self._held: list[tuple[int, np.ndarray]] = []  # observations of one time, not yet used
-        self._held_t = math.nan
+        self.sightings = Sightings(calibration)
+        self._aligned: list[LandmarkObservation] = []  # align_observations: not yet used
         slip = config.slip
         self.k: np.ndarray | None = None  # (N, 2) each particle's slip coefficients
         if slip.estimate:
@@ -374,24 +374,35 @@ class FastSlam(Localizer):
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
-        inc = self.odometry.increment(msg)
-        if inc is not None:
-            if self.config.align_observations and self._held:
-                part, inc = split_increment(inc, self._held_t)
+        if (obs := self.sightings.offer(msg)) is not None:
+            self._sighted(obs)
+        if self.sightings.taken:
+            self.revision += 1  # held; the past will change when they are used
+        elif (inc := self.odometry.increment(msg)) is not None:
+            for obs in self._aligned:  # sightings made since the last odometry message
+                part, inc = split_increment(inc, obs.t)
                 self._move(part)
-            self._flush()
+                self._use(obs)
+            self._aligned = []
             self._move(inc)
             self._record(msg.t)
-        elif (obs := landmark_observation(msg, self.calibration)) is not None:
-            self._observe(obs)
         if not self.track and self.odometry.has_odometry:
             self._record(msg.t)
 
+    def _sighted(self, obs: LandmarkObservation) -> None:
+        """The landmark sightings of one time (slam.measurement.Sightings)."""
+        if self.config.align_observations and self.track and obs.t > self.track.last_t:
+            self._aligned.append(obs)  # used part way through the next odometry step
+        else:
+            self._use(obs)
+
     def _flush(self) -> None:
-        """Fold the held observations (all of one time) into the filter."""
-        if self._held:
-            items, self._held = self._held, []
-            self._update(items)
+        """An output is asked for: every sighting held is used now."""
+        if (obs := self.sightings.take()) is not None:
+            self._sighted(obs)
+        aligned, self._aligned = self._aligned, []
+        for obs in aligned:
+            self._use(obs)
 
     def _move(self, inc: Increment) -> None:
         q = inc.cov
@@ -435,7 +446,7 @@ class FastSlam(Localizer):
         self.counts["new_landmarks"] += 1
         return col
 
-    def _observe(self, obs: LandmarkObservation) -> None:
+    def _use(self, obs: LandmarkObservation) -> None:
         items: list[tuple[int, np.ndarray]] = []
         for lid, z, yaw in zip(obs.ids, obs.z, obs.yaw, strict=True):
             if lid < 0:
@@ -445,13 +456,8 @@ class FastSlam(Localizer):
             else:
                 zz = np.array([z[0], z[1], yaw]) if self.dim == 3 else np.asarray(z, dtype=float)
                 items.append((int(lid), zz))
-        if not items:
-            return
-        if self._held and obs.t != self._held_t:
-            self._flush()
-        self._held.extend(items)
-        self._held_t = obs.t
-        self.revision += 1  # the past will change when they are used
+        if items:
+            self._update(items)
 
     def _update(self, items: list[tuple[int, np.ndarray]]) -> None:
         """The landmark observations of one time: FastSLAM's four steps (compiled:

@@ -112,7 +112,7 @@ from slam.measurement import (
     RANGE_SIGMA_M,
     LandmarkObservation,
     ObservationModel,
-    landmark_observation,
+    Sightings,
 )
 from slam.motion import (
     Increment,
@@ -411,7 +411,7 @@ class GtsamSmoother(Localizer):
         self._k = np.array(config.slip.k_prior, dtype=float)
         self._delta_jk = np.zeros((3, 2))
         self._held: list[LandmarkObservation] = []  # align_observations: not yet placed
-        self._unflushed_t: float | None = None  # time of landmark factors not yet in iSAM2
+        self.sightings = Sightings(calibration)
         if config.scan_matching:
             self.counts.update(
                 scans_kept=0,
@@ -426,10 +426,11 @@ class GtsamSmoother(Localizer):
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
-        if self._unflushed_t is not None and msg.t != self._unflushed_t:
-            self._flush()
-        inc = self.odometry.increment(msg)
-        if inc is not None:
+        if (obs := self.sightings.offer(msg)) is not None:
+            self._sighted(obs)
+        if self.sightings.taken:
+            pass  # held, to be used with the other sightings of its time
+        elif (inc := self.odometry.increment(msg)) is not None:
             for obs in self._held:  # observations made since the last odometry message
                 part, inc = split_increment(inc, obs.t)
                 self._move(part)
@@ -439,20 +440,22 @@ class GtsamSmoother(Localizer):
             self._note(msg.t)
             if self._keyframe_due(msg.t):
                 self._new_keyframe(msg.t)
-        elif (
-            self.config.use_landmarks
-            and (obs := landmark_observation(msg, self.calibration)) is not None
-        ):
-            if self.config.align_observations and self._t is not None and obs.t > self._t:
-                self._held.append(obs)  # placed when the next odometry message spans it
-            else:
-                self._observe(obs)
         elif (fix := absolute_observation(msg, self.config.absolute)) is not None:
             self._absolute(fix)
         elif self.config.scan_matching and isinstance(msg, LaserScan | DepthFrame):
             self._scan(msg)
         if self._kf < 0 and self.odometry.has_odometry:
             self._start(msg.t)
+
+    def _sighted(self, obs: LandmarkObservation) -> None:
+        """The landmark sightings of one time (slam.measurement.Sightings): one iSAM2
+        update for them, however many messages brought them."""
+        if not self.config.use_landmarks:
+            return
+        if self.config.align_observations and self._t is not None and obs.t > self._t:
+            self._held.append(obs)  # placed when the next odometry message spans it
+        else:
+            self._observe(obs)
 
     def _move(self, inc: Increment) -> None:
         """Integrate an odometry increment (slip-corrected with the latest k)."""
@@ -463,12 +466,14 @@ class GtsamSmoother(Localizer):
             self._integrate(inc.ds, inc.dtheta, inc.cov)
 
     def _place_held(self) -> None:
-        """An output is asked for: observations still waiting for the odometry after them
-        (align_observations) placed at the latest pose, and every factor added."""
+        """An output is asked for: the sightings held taken as they are, and observations
+        still waiting for the odometry after them (align_observations) placed at the
+        latest pose."""
+        if (obs := self.sightings.take()) is not None:
+            self._sighted(obs)
         for obs in self._held:
             self._observe(obs)
         self._held = []
-        self._flush()
 
     def _start(self, t: float) -> None:
         c = self.config
@@ -622,10 +627,7 @@ class GtsamSmoother(Localizer):
                 guess = self._kf_pose[:2] + r * np.array([math.cos(a), math.sin(a)])
                 self._values.insert(L(lid), gtsam.Point2(*guess))
             self.counts["landmark_factors"] += 1
-        # one iSAM2 update for all observations of one time, however many messages bring
-        # them (one per landmark, as MRCLAM, or one per frame): at the next message of
-        # another time, keyframe, or output
-        self._unflushed_t = obs.t
+        self._flush()
 
     def _tag_factor(self, lid: int, q: np.ndarray, r: float, b: float, sr: float, psi: float):
         """BetweenFactorPose2 keyframe → tag T(lid) seen at q (keyframe frame), range r,
@@ -832,7 +834,6 @@ class GtsamSmoother(Localizer):
         return True
 
     def _flush(self) -> None:
-        self._unflushed_t = None
         if self._graph.size() == 0 and self._values.size() == 0:
             return
         result = self.isam.update(self._graph, self._values)
@@ -856,7 +857,8 @@ class GtsamSmoother(Localizer):
 
     # -- outputs ----------------------------------------------------------------------
     def estimate(self) -> PoseEstimate:
-        self._flush()  # (held observations wait for their odometry: align_observations)
+        if (obs := self.sightings.take()) is not None:
+            self._sighted(obs)
         t = self._t if self._t is not None else float("nan")
         if self._kf < 0:
             return PoseEstimate(t, np.array(self.config.initial_pose, float), np.zeros((3, 3)))

@@ -184,3 +184,71 @@ def range_bearings_observation(msg: RangeBearings) -> LandmarkObservation:
         np.stack([msg.ranges_m, wrap_angle(msg.bearings_rad)], axis=-1),
         np.full(len(msg), np.nan),
     )
+
+
+class Sightings:
+    """The landmark sightings of one time, gathered from however many messages bring them
+    (one RangeBearing per landmark, as MRCLAM; one RangeBearings or TagDetections per
+    frame), so that a localizer uses them once, as one LandmarkObservation, whichever way
+    they came.
+
+    `offer(msg)` before a localizer handles a message: it returns the sightings held so
+    far when `msg` ends them (a message of another time, or not a sighting), else None;
+    and keeps `msg` when it is itself a sighting (then `taken` is True and the localizer
+    has nothing else to do with it). `take()` returns what is held (an output is asked
+    for). A RangeBearing is kept as four numbers until then, a lone frame as it is, so
+    the per-landmark form costs little more than the batched one (issue 13)."""
+
+    __slots__ = ("_calibration", "_items", "_t", "taken")
+
+    def __init__(self, calibration: WalkerCalibration) -> None:
+        self._calibration = calibration
+        self._t = math.nan
+        # (id, range, bearing, yaw) of each RangeBearing, or an observation as it came
+        self._items: list[tuple[int, float, float, float] | LandmarkObservation] = []
+        self.taken = False
+
+    def __bool__(self) -> bool:
+        return bool(self._items)
+
+    @property
+    def t(self) -> float:
+        """Time of the sightings held (NaN when none)."""
+        return self._t
+
+    def offer(self, msg: Message) -> LandmarkObservation | None:
+        if isinstance(msg, RangeBearing):
+            ready = self.take() if self._items and msg.t != self._t else None
+            b = math.pi - ((math.pi - msg.bearing_rad) % (2.0 * math.pi))  # wrap_angle
+            self._items.append((msg.landmark_id, msg.range_m, b, math.nan))
+            self._t = msg.t
+            self.taken = True
+            return ready
+        obs = landmark_observation(msg, self._calibration)
+        self.taken = obs is not None or isinstance(msg, TagDetections | RangeBearings)
+        ready = self.take() if self._items and (not self.taken or msg.t != self._t) else None
+        if obs is not None:
+            self._items.append(obs)  # kept whole while it is alone
+            self._t = msg.t
+        return ready
+
+    def take(self) -> LandmarkObservation | None:
+        """The sightings held (in the order they came), as one observation; None if none."""
+        items, self._items = self._items, []
+        if not items:
+            return None
+        if len(items) == 1 and isinstance(items[0], LandmarkObservation):
+            self._t = math.nan
+            return items[0]
+        rows = []
+        for it in items:
+            if isinstance(it, LandmarkObservation):
+                rows.extend(zip(it.ids.tolist(), *it.z.T.tolist(), it.yaw.tolist(), strict=True))
+            else:
+                rows.append(it)
+        ids, r, b, yaw = zip(*rows, strict=True)
+        obs = LandmarkObservation(
+            self._t, np.array(ids, dtype=int), np.column_stack([r, b]), np.array(yaw, dtype=float)
+        )
+        self._t = math.nan
+        return obs

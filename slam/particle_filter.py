@@ -96,7 +96,7 @@ from slam.measurement import (
     RANGE_SIGMA_FRAC,
     RANGE_SIGMA_M,
     LandmarkObservation,
-    landmark_observation,
+    Sightings,
     range_bearing,
     robust_log_likelihood,
 )
@@ -344,7 +344,7 @@ class ParticleFilter(Localizer):
         self.track = TrajectoryRecorder()
         self._resample_due = False  # weights changed since the last resampling check
         self._obs_t = -math.inf  # time of the observations weighted in since then
-        self._held: LandmarkObservation | None = None  # landmark sightings not used yet
+        self.sightings = Sightings(calibration)
         self.revises_past = config.smoother != "none"
         self.paths = ParticlePaths(config.path_snapshot_s)
         self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
@@ -371,17 +371,13 @@ class ParticleFilter(Localizer):
 
     # -- inputs ---------------------------------------------------------------------------
     def process(self, msg: Message) -> None:
-        obs = landmark_observation(msg, self.calibration)
-        if self._held is not None and (obs is None or obs.t != self._held.t):
-            self._use_held()
-        inc = None if obs is not None else self.odometry.increment(msg)
-        if inc is not None:
+        if (obs := self.sightings.offer(msg)) is not None:
+            self._observe_landmarks(obs)  # the sightings of one time weigh them once
+        if self.sightings.taken:
+            pass  # held, to be used with the other sightings of its time
+        elif (inc := self.odometry.increment(msg)) is not None:
             self._predict(inc)
             self._record(msg.t)
-        elif obs is not None:
-            # held until a message of another kind or time, or an output: the sightings
-            # of one time weigh the particles once, however many messages bring them
-            self._held = obs if self._held is None else _joined(self._held, obs)
         elif (fix := absolute_observation(msg, self.pf.absolute)) is not None:
             self._observe_absolute(fix)
         elif isinstance(msg, DepthFrame | LaserScan):
@@ -424,9 +420,9 @@ class ParticleFilter(Localizer):
             self._delta_cov = f @ self._delta_cov @ f.T + g @ inc.cov @ g.T
 
     def _use_held(self) -> None:
-        if self._held is not None:
-            held, self._held = self._held, None
-            self._observe_landmarks(held)
+        """An output is asked for: the sightings held are used as they are."""
+        if (obs := self.sightings.take()) is not None:
+            self._observe_landmarks(obs)
 
     def _observe_landmarks(self, obs: LandmarkObservation) -> None:
         if not len(obs):
@@ -725,16 +721,6 @@ class ParticleFilter(Localizer):
         if c["landmark_observations"] == 0 and c["scan_updates"] == 0 and absolute == 0:
             notes["note"] = ODOMETRY_ONLY_NOTE
         return notes
-
-
-def _joined(a: LandmarkObservation, b: LandmarkObservation) -> LandmarkObservation:
-    """The sightings of two observations of one time, as one."""
-    return LandmarkObservation(
-        a.t,
-        np.concatenate([a.ids, b.ids]),
-        np.concatenate([a.z, b.z]),
-        np.concatenate([a.yaw, b.yaw]),
-    )
 
 
 SPEC = Spec(

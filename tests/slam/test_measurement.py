@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 from helpers import numerical_jacobian
 
-from hardware.messages import TagDetections
+from hardware.calibration import WalkerCalibration
+from hardware.messages import EncoderTicks, RangeBearing, RangeBearings, TagDetections
 from hardware.sim.simulator import SimConfig
 from hardware.sim.tag_camera import SimTagCamera, TagCameraConfig
 from hardware.sim.world import load_world
 from slam.measurement import (
+    Sightings,
     landmark_from_range_bearing,
     landmark_from_range_bearing_jacobians,
     range_bearing,
@@ -93,3 +95,25 @@ def test_tag_observations_agree_with_the_world():
             assert abs(math.remainder(pose[2] + yaw - tag.yaw, 2 * math.pi)) < 0.02
             seen += 1
     assert seen > 20
+
+
+def test_sightings_of_one_time_come_out_together_in_order():
+    buf = Sightings(WalkerCalibration())
+    assert buf.offer(RangeBearing(1.0, 4, 2.0, 0.5)) is None and buf.taken
+    assert buf.offer(RangeBearings.of(1.0, [7, -1], [3.0, 4.0], [3.5, -0.1])) is None
+    assert buf.offer(RangeBearing(1.0, 5, 6.0, -4.0)) is None
+    # a message of another time ends them; it is held in turn
+    obs = buf.offer(RangeBearing(1.5, 4, 2.1, 0.4))
+    assert obs.t == 1.0 and obs.ids.tolist() == [4, 7, -1, 5]
+    assert obs.z[:, 0].tolist() == [2.0, 3.0, 4.0, 6.0]
+    np.testing.assert_allclose(obs.z[:, 1], [0.5, 3.5 - 2 * math.pi, -0.1, 2 * math.pi - 4.0])
+    assert np.isnan(obs.yaw).all() and buf.t == 1.5
+    # a message that is not a sighting ends them too, and is not taken
+    obs = buf.offer(EncoderTicks(1.5, 10, 12))
+    assert not buf.taken and obs.ids.tolist() == [4] and buf.take() is None
+    # a lone frame comes out as it was given; an empty one is taken but holds nothing
+    frame = RangeBearings.of(2.0, [1, 2], [1.0, 2.0], [0.0, 0.1])
+    assert buf.offer(frame) is None and buf.offer(TagDetections(2.0)) is None and buf.taken
+    obs = buf.take()
+    assert obs.ids.tolist() == [1, 2] and np.allclose(obs.z, [[1.0, 0.0], [2.0, 0.1]])
+    assert not buf and math.isnan(buf.t)
