@@ -118,6 +118,39 @@ def poses_log_likelihood(
 
 
 @njit(cache=True, nogil=True)
+def field_log_likelihood(
+    log_p: np.ndarray,
+    origin_x: float,
+    origin_y: float,
+    inv_resolution: float,
+    nx: int,
+    ny: int,
+    points: np.ndarray,
+    poses: np.ndarray,
+) -> np.ndarray:
+    """Σ over walker-frame points (K, 2), placed at each of the poses (M, 3), of a
+    likelihood field's log p (flat, row-major ny × nx, and one last entry for points
+    outside it) → (M,). The particle filter's scan likelihood against the shared map
+    (slam.particle_filter), in one pass instead of numpy's (M, K) temporaries."""
+    out = np.empty(poses.shape[0])
+    outside = ny * nx
+    for m in range(poses.shape[0]):
+        x, y = poses[m, 0], poses[m, 1]
+        c, s = math.cos(poses[m, 2]), math.sin(poses[m, 2])
+        total = 0.0
+        for k in range(points.shape[0]):
+            px, py = points[k, 0], points[k, 1]
+            ix = math.floor((x + c * px - s * py - origin_x) * inv_resolution)
+            iy = math.floor((y + s * px + c * py - origin_y) * inv_resolution)
+            if 0 <= ix < nx and 0 <= iy < ny:
+                total += log_p[iy * nx + ix]
+            else:
+                total += log_p[outside]
+        out[m] = total
+    return out
+
+
+@njit(cache=True, nogil=True)
 def hill_climb(
     grid: tuple,
     points: np.ndarray,

@@ -75,7 +75,6 @@ from typing import Any
 
 import numpy as np
 from scipy.ndimage import binary_erosion, distance_transform_edt
-from scipy.special import logsumexp
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
@@ -91,6 +90,7 @@ from slam.absolute import (
     fused_count,
 )
 from slam.base import KnownMapConfig, Localizer, PoseEstimate
+from slam.grid_kernels import field_log_likelihood
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -488,7 +488,13 @@ class ParticleFilter(Localizer):
 
     def _score(self, poses: np.ndarray, points: np.ndarray, f: _Field) -> np.ndarray:
         """The frame's log-likelihood (times beam_weight) at each of the poses (M,)."""
-        return self.pf.beam_weight * f.log_p[self._cells(poses, points, f)].sum(axis=1)
+        ny, nx = f.shape
+        ox, oy = f.origin
+        poses = np.ascontiguousarray(poses, dtype=float)
+        points = np.ascontiguousarray(points, dtype=float)
+        inv = 1.0 / f.resolution
+        total = field_log_likelihood(f.log_p, ox, oy, inv, nx, ny, points, poses)
+        return self.pf.beam_weight * total
 
     def _prior_cov(self) -> np.ndarray:
         """(N, 3, 3) world-frame covariance of each particle's accumulated odometry, with
@@ -607,8 +613,11 @@ class ParticleFilter(Localizer):
             self._maybe_resample()
             self._obs_t = t
         lw = self.log_weights + log_likelihood
-        lw -= logsumexp(lw)
-        w = np.exp(lw)
+        top = lw.max()  # normalised by log Σ exp (scipy's logsumexp: 150 µs on 500)
+        w = np.exp(lw - top)
+        total = w.sum()
+        lw -= top + math.log(total)
+        w /= total
         n_eff = 1.0 / float(np.dot(w, w))
         self.counts["n_eff_min"] = min(self.counts["n_eff_min"], n_eff)
         self.log_weights, self._weights = lw, w

@@ -407,3 +407,23 @@ def test_depth_frames_against_its_own_map_beat_dead_reckoning(course_trial):
     assert pf.diagnostics()["scan_updates"] > 200
     e_pf, e_dr = ate(pf.trajectory(), gt), ate(dr.trajectory(), gt)
     assert e_pf["ate_rmse_unaligned_m"] < e_dr["ate_rmse_unaligned_m"]
+
+
+def test_compiled_field_score_equals_the_cell_lookup():
+    """The compiled scan likelihood (slam.grid_kernels.field_log_likelihood) sums the
+    same cells as placing the points at each pose and indexing the field (`_cells`),
+    points beyond the field's edge scored by its last entry."""
+    from slam.particle_filter import _Field
+
+    rng = np.random.default_rng(8)
+    ny, nx = 40, 60
+    log_p = np.append(rng.normal(size=ny * nx), -7.0)
+    field = _Field(log_p, np.ones(ny * nx + 1, bool), (-1.0, 0.5), 0.05, (ny, nx))
+    pf = create("particle-filter", WalkerCalibration())
+    poses = np.column_stack(
+        [rng.uniform(-0.5, 2.5, 50), rng.uniform(0.5, 2.5, 50), rng.uniform(-3, 3, 50)]
+    )
+    points = rng.uniform(-1.5, 1.5, (80, 2))
+    expected = pf.pf.beam_weight * log_p[pf._cells(poses, points, field)].sum(axis=1)
+    assert (pf._cells(poses, points, field) == ny * nx).any()  # some fall outside
+    np.testing.assert_allclose(pf._score(poses, points, field), expected, rtol=1e-12)
