@@ -16,6 +16,8 @@ import math
 import numpy as np
 from numba import njit
 
+from slam.kernel_math import wrap
+
 TWO_PI = 2.0 * math.pi
 
 
@@ -29,7 +31,7 @@ def apply(x, p, k, pht, nu) -> None:
         for e in range(m):
             acc += k[a, e] * nu[e]
         x[a] += acc
-    x[2] = math.pi - ((math.pi - x[2]) % TWO_PI)
+    x[2] = wrap(x[2])
     for a in range(n):
         for b in range(a, n):
             acc = 0.0

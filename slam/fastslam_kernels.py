@@ -19,14 +19,9 @@ import math
 import numpy as np
 from numba import njit
 
-TWO_PI = 2.0 * math.pi
-LOG_TWO_PI = math.log(TWO_PI)
+from slam.kernel_math import inverse, wrap
 
-
-@njit(cache=True, nogil=True, inline="always")
-def _wrap(a: float) -> float:
-    """(−π, π], as hardware.geometry.wrap_angle."""
-    return math.pi - ((math.pi - a) % TWO_PI)
+LOG_TWO_PI = math.log(2.0 * math.pi)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -37,7 +32,7 @@ def _predict(pose, lm, d, zhat, g_s, g_l) -> None:
     q = max(dx * dx + dy * dy, 1e-12)
     r = math.sqrt(q)
     zhat[0] = math.hypot(dx, dy)
-    zhat[1] = _wrap(math.atan2(dy, dx) - pose[2])
+    zhat[1] = wrap(math.atan2(dy, dx) - pose[2])
     g_s[:, :] = 0.0
     g_l[:, :] = 0.0
     g_l[0, 0], g_l[0, 1] = dx / r, dy / r
@@ -46,35 +41,9 @@ def _predict(pose, lm, d, zhat, g_s, g_l) -> None:
     g_s[1, 0], g_s[1, 1] = dy / q, -dx / q
     g_s[1, 2] = -1.0
     if d == 3:
-        zhat[2] = _wrap(lm[2] - pose[2])
+        zhat[2] = wrap(lm[2] - pose[2])
         g_s[2, 2] = -1.0
         g_l[2, 2] = 1.0
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _inverse(a, d, out) -> float:
-    """out = a⁻¹ of a symmetric d×d (d = 2 or 3) matrix by its adjugate; returns det a."""
-    if d == 2:
-        det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
-        out[0, 0] = a[1, 1] / det
-        out[1, 1] = a[0, 0] / det
-        out[0, 1] = -a[0, 1] / det
-        out[1, 0] = -a[1, 0] / det
-        return det
-    c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
-    c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
-    c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
-    det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
-    out[0, 0] = c00 / det
-    out[1, 0] = c01 / det
-    out[2, 0] = c02 / det
-    out[0, 1] = (a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]) / det
-    out[1, 1] = (a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]) / det
-    out[2, 1] = (a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]) / det
-    out[0, 2] = (a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]) / det
-    out[1, 2] = (a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]) / det
-    out[2, 2] = (a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]) / det
-    return det
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -120,7 +89,7 @@ def _kalman(c, cg, s_inv, nu, k, mean, cov) -> None:
 def _innovation(z, zhat, d, nu) -> None:
     nu[0] = z[0] - zhat[0]
     for i in range(1, d):
-        nu[i] = _wrap(z[i] - zhat[i])
+        nu[i] = wrap(z[i] - zhat[i])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -184,13 +153,13 @@ def fold(mu, sigma, means, covs, seen, w, cols, z, r, gate, gain, proposal, logw
                 for a in range(d):
                     for b in range(d):
                         s[a, b] += q[a, b]
-                dets[i] = _inverse(s, d, s_invs[i])
+                dets[i] = inverse(s, d, s_invs[i])
                 for a in range(3):
                     mu_new[i, a] = mu[i, a]
                 _kalman(sigma[i], pg, s_invs[i], nus[i], k, mu_new[i], sig_new[i])
             else:
                 s[:, :] = q
-                dets[i] = _inverse(s, d, s_invs[i])
+                dets[i] = inverse(s, d, s_invs[i])
         # the gate: ν̄ᵀ C⁻¹ ν̄ of the weighted mixture matched to one Gaussian
         mean_nu[:] = 0.0
         for i in range(n):
@@ -205,7 +174,7 @@ def fold(mu, sigma, means, covs, seen, w, cols, z, r, gate, gain, proposal, logw
                     for b in range(d):
                         dn = (nus[i, a] - mean_nu[a]) * (nus[i, b] - mean_nu[b])
                         c_mix[a, b] += wi * (ss[i, a, b] + dn)
-        _inverse(c_mix, d, c_inv)
+        inverse(c_mix, d, c_inv)
         maha = 0.0
         for a in range(d):
             for b in range(d):
@@ -219,7 +188,7 @@ def fold(mu, sigma, means, covs, seen, w, cols, z, r, gate, gain, proposal, logw
             if proposal:
                 mu[i, 0] = mu_new[i, 0]
                 mu[i, 1] = mu_new[i, 1]
-                mu[i, 2] = _wrap(mu_new[i, 2])
+                mu[i, 2] = wrap(mu_new[i, 2])
                 sigma[i] = sig_new[i]
             logw[i] += _log_normal(nus[i], s_invs[i], dets[i], d) / gain
     return used
@@ -241,7 +210,7 @@ def sample(mu, sigma, e, out) -> None:
         l22 = math.sqrt(max(a[2, 2] - l20 * l20 - l21 * l21, 0.0))
         out[i, 0] = mu[i, 0] + l00 * e[i, 0]
         out[i, 1] = mu[i, 1] + l10 * e[i, 0] + l11 * e[i, 1]
-        out[i, 2] = _wrap(mu[i, 2] + l20 * e[i, 0] + l21 * e[i, 1] + l22 * e[i, 2])
+        out[i, 2] = wrap(mu[i, 2] + l20 * e[i, 0] + l21 * e[i, 1] + l22 * e[i, 2])
 
 
 @njit(cache=True, nogil=True)
@@ -273,10 +242,10 @@ def update_landmarks(poses, means, covs, seen, cols, z, r, used, had_seen, gain,
                 _gcg(g_l, lc, pg, s)  # S = G_l Σ G_lᵀ + R
                 for a in range(d):
                     s[a, a] += r[o, a]
-                det = _inverse(s, d, s_inv)
+                det = inverse(s, d, s_inv)
                 _kalman(lc, pg, s_inv, nu, k, lm, lc)
                 if d == 3:
-                    lm[2] = _wrap(lm[2])
+                    lm[2] = wrap(lm[2])
                 if not had_seen[o, i]:  # met earlier in this step: weighted now
                     logw[i] += _log_normal(nu, s_inv, det, d) / gain
             else:
@@ -292,6 +261,6 @@ def update_landmarks(poses, means, covs, seen, cols, z, r, used, had_seen, gain,
                 lc[1, 1] = sn * sn * v0 + rr * rr * c * c * v1
                 lc[0, 1] = lc[1, 0] = c * sn * v0 - rr * rr * sn * c * v1
                 if d == 3:
-                    lm[2] = _wrap(poses[i, 2] + z[o, 2])
+                    lm[2] = wrap(poses[i, 2] + z[o, 2])
                     lc[2, 2] = r[o, 2]
                 seen[i, col] = True

@@ -24,6 +24,9 @@ import math
 import numpy as np
 from numba import njit
 
+from slam.kernel_math import wrap
+from slam.scan_proposal import fit_one
+
 
 @njit(cache=True, nogil=True)
 def point_log_likelihood(
@@ -225,3 +228,89 @@ def hill_climb(
             step_theta *= 0.5
             halvings += 1
     return pose, best, matched
+
+
+@njit(cache=True, nogil=True)
+def propose(
+    grid: tuple,
+    points: np.ndarray,
+    start: np.ndarray,
+    prior_cov: np.ndarray,
+    turn: float,
+    match: tuple,
+    fit_steps: np.ndarray,
+    min_points: int,
+    e: np.ndarray,
+) -> tuple[np.ndarray, float, bool]:
+    """One particle's improved proposal against its own map (slam.grid_rbpf, steps 1-2):
+    the hill climb from the odometry pose `start` (and, when `turn` > 0, from it turned
+    by ± turn, the best of the climbs kept); when at least `min_points` points matched,
+    the Gaussian fit of likelihood × prior on the 3×3×3 lattice of `fit_steps` around
+    the match (slam.scan_proposal.fit_one), the pose drawn from it with the standard
+    normals e (3,), log η plus the lattice cell's log volume; otherwise the pose drawn
+    from the prior N(start, prior_cov) and the frame's log-likelihood there.
+
+    match = (step_m, step_rad, refinements, kernel_cells, sigma_m, z_hit, z_rand,
+    beam_weight). Returns (pose, log weight, matched)."""
+    step_m, step_rad, refinements, kernel, sigma, z_hit, z_rand, beam_weight = match
+    best_pose, best_score, best_matched = hill_climb(
+        grid, points, start, step_m, step_rad, refinements, kernel, sigma, z_hit, z_rand
+    )
+    if turn > 0.0:
+        for sign in (1.0, -1.0):
+            s = start.copy()
+            s[2] += sign * turn
+            pose, score, matched = hill_climb(
+                grid, points, s, step_m, step_rad, refinements, kernel, sigma, z_hit, z_rand
+            )
+            if score > best_score:
+                best_pose, best_score, best_matched = pose, score, matched
+    mean = np.empty(3)
+    cov = np.empty((3, 3))
+    if best_matched >= min_points:
+        fit = np.empty((27, 3))
+        ll = np.empty(27)
+        g = 0
+        for i in range(-1, 2):
+            for j in range(-1, 2):
+                for k in range(-1, 2):
+                    fit[g, 0] = best_pose[0] + i * fit_steps[0]
+                    fit[g, 1] = best_pose[1] + j * fit_steps[1]
+                    fit[g, 2] = best_pose[2] + k * fit_steps[2]
+                    ll[g] = (
+                        beam_weight
+                        * frame_log_likelihood(grid, points, fit[g], kernel, sigma, z_hit, z_rand)[
+                            0
+                        ]
+                    )
+                    g += 1
+        log_w = fit_one(fit, ll, start, prior_cov, fit_steps, mean, cov)
+        log_w += math.log(fit_steps[0] * fit_steps[1] * fit_steps[2]) - 1.5 * math.log(
+            2.0 * math.pi
+        )
+    else:
+        mean[:] = start
+        cov[:, :] = prior_cov
+    pose = draw(mean, cov, e)
+    if best_matched < min_points:
+        log_w = (
+            beam_weight * frame_log_likelihood(grid, points, pose, kernel, sigma, z_hit, z_rand)[0]
+        )
+    return pose, log_w, best_matched >= min_points
+
+
+@njit(cache=True, nogil=True)
+def draw(mean: np.ndarray, cov: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """mean + L e, L the lower Cholesky factor of the positive definite cov; θ wrapped."""
+    l00 = math.sqrt(cov[0, 0])
+    l10 = cov[1, 0] / l00
+    l20 = cov[2, 0] / l00
+    l11 = math.sqrt(cov[1, 1] - l10 * l10)
+    l21 = (cov[2, 1] - l20 * l10) / l11
+    l22 = math.sqrt(cov[2, 2] - l20 * l20 - l21 * l21)
+    out = np.empty(3)
+    out[0] = mean[0] + l00 * e[0]
+    out[1] = mean[1] + l10 * e[0] + l11 * e[1]
+    theta = mean[2] + l20 * e[0] + l21 * e[1] + l22 * e[2]
+    out[2] = wrap(theta)
+    return out

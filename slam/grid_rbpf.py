@@ -50,10 +50,10 @@ from hardware.registry import Spec
 from mapping.grid import GridExtent, HitCentroidGrid, make_grid
 from mapping.mapper import MapperConfig, OccupancyMapper, Projection
 from slam.base import PoseEstimate
-from slam.grid_kernels import frame_log_likelihood, hill_climb, poses_log_likelihood
+from slam.grid_kernels import draw, propose
 from slam.particle_filter import ParticleFilter, ParticleFilterConfig, ParticleSettings
 from slam.particle_paths import ParticlePaths
-from slam.scan_proposal import ProposalLattice, gaussian_fit, lattice, sample_gaussians
+from slam.scan_proposal import ProposalLattice
 from slam.trajectory import Trajectory
 
 
@@ -201,39 +201,28 @@ class GridRbpf(ParticleFilter):
         """The frame's scan match per particle: scored with its points as projected (a
         laser scan's own end points), integrated compacted (as the mapper does)."""
         c = self.config
-        m = c.match
         if self._moved[0] < c.scan_every_m and self._moved[1] < c.scan_every_rad:
             return
         obs = projection.compact
         points = self._scoring_points(projection.raw)
         prior = self._prior_cov()
-        steps = np.array([m.fit_step_m, m.fit_step_m, m.fit_step_rad])
-        log_volume = float(np.log(steps).sum()) - 1.5 * math.log(2.0 * math.pi)
+        params, fit_steps = self._match_params()
+        e = self.rng.standard_normal((len(self.particles), 3))
         new = np.empty_like(self.particles)
         log_eta = np.zeros(len(self.particles))
         scored = False
         for i, grid in enumerate(self._maps):
             args = self._score_args(grid)
             if args is None or len(points) < c.min_points:
-                new[i] = sample_gaussians(self.particles[i : i + 1], prior[i : i + 1], self.rng)[0]
+                new[i] = draw(self.particles[i], prior[i], e[i])
                 continue
             scored = True
-            kernel = (m.kernel_cells, m.sigma_m, c.z_hit, c.z_rand)
-            pose, matched = self._match(args, points, self.particles[i], prior[i], kernel)
-            if matched >= c.min_points:
-                fit = lattice(pose, (1, 1, 1), steps)
-                ll = m.beam_weight * poses_log_likelihood(*args, points, fit, *kernel)
-                mu, cov, eta = gaussian_fit(
-                    fit, ll, self.particles[i : i + 1], prior[i : i + 1], steps
-                )
-                new[i] = sample_gaussians(mu, cov, self.rng)[0]
-                log_eta[i] = eta[0] + log_volume
-                self.counts["scan_matches"] += 1
-            else:
-                new[i] = sample_gaussians(self.particles[i : i + 1], prior[i : i + 1], self.rng)[0]
-                ll, _ = frame_log_likelihood(*args, points, new[i], *kernel)
-                log_eta[i] = m.beam_weight * ll
-                self.counts["unmatched"] += 1
+            turn = self._turn(prior[i])
+            new[i], log_eta[i], matched = propose(
+                *args, points, self.particles[i], prior[i], turn, params, fit_steps,
+                c.min_points, e[i],
+            )  # fmt: skip
+            self.counts["scan_matches" if matched else "unmatched"] += 1
         correction = new - self.particles
         correction[:, 2] = wrap_angle(correction[:, 2])
         self.corrections.snapshot(msg.t, correction)
@@ -248,29 +237,23 @@ class GridRbpf(ParticleFilter):
         self.revision += 1
         self._snapshot(msg.t)
 
-    def _match(
-        self, args: tuple, points: np.ndarray, start: np.ndarray, prior: np.ndarray, kernel
-    ) -> tuple[np.ndarray, int]:
-        """Hill-climbed pose from `start`, and from `start` turned by ± turn_starts_sigma
-        heading σ of `prior` when that is at least two first angular steps: (pose, matched)."""
+    def _match_params(self) -> tuple[tuple, np.ndarray]:
+        """The match's parameters as slam.grid_kernels.propose takes them, and the
+        lattice steps of the proposal's fit."""
+        c, m = self.config, self.config.match
+        params = (m.step_m, m.step_rad, m.refinements, m.kernel_cells, m.sigma_m)
+        fit_steps = np.array([m.fit_step_m, m.fit_step_m, m.fit_step_rad])
+        return (*params, c.z_hit, c.z_rand, m.beam_weight), fit_steps
+
+    def _turn(self, prior: np.ndarray) -> float:
+        """How far to turn the match's extra starts (± turn_starts_sigma heading σ of the
+        prior) when that is at least two first angular steps, else 0 (one start)."""
         c = self.config.match
-        sigma_theta = math.sqrt(max(float(prior[2, 2]), 0.0))
-        turns = [0.0]
-        offset = c.turn_starts_sigma * sigma_theta
-        if offset >= 2.0 * c.step_rad:  # nearer starts the climb reaches by itself
-            turns += [offset, -offset]
-        best = None
-        for turn in turns:
-            s = start.copy()
-            s[2] += turn
-            pose, score, matched = hill_climb(
-                *args, points, s, c.step_m, c.step_rad, c.refinements, *kernel
-            )
-            if best is None or score > best[1]:
-                best = (pose, score, matched)
-        if len(turns) > 1:
-            self.counts["turn_starts"] += 1
-        return best[0], best[2]
+        offset = c.turn_starts_sigma * math.sqrt(max(float(prior[2, 2]), 0.0))
+        if offset < 2.0 * c.step_rad:  # nearer starts the climb reaches by itself
+            return 0.0
+        self.counts["turn_starts"] += 1
+        return offset
 
     def _scoring_points(self, obs) -> np.ndarray:
         """Up to max_beams of the frame's obstacle points within max_range_m (walker frame),

@@ -19,12 +19,14 @@ lattice and every particle reuses it:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import logsumexp
+from numba import njit
 
 from hardware.geometry import wrap_angle
+from slam.kernel_math import inverse, wrap
 
 
 @dataclass(frozen=True)
@@ -58,6 +60,50 @@ def lattice(centre: np.ndarray, half_steps: tuple[int, int, int], steps: np.ndar
     return grid + np.asarray(centre, dtype=float)
 
 
+@njit(cache=True, nogil=True)
+def fit_one(poses, log_likelihood, prior_mean, prior_cov, steps, mu, cov) -> float:
+    """One particle's Gaussian fit of likelihood × prior on a lattice (module doc, 3):
+    mu (3,) and cov (3, 3) filled, log η returned (see `gaussian_fit`)."""
+    inv = np.empty((3, 3))
+    det = inverse(prior_cov, 3, inv)
+    m = poses.shape[0]
+    log_tau = np.empty(m)
+    d = np.empty(3)
+    top = -math.inf
+    for g in range(m):
+        d[0] = poses[g, 0] - prior_mean[0]
+        d[1] = poses[g, 1] - prior_mean[1]
+        d[2] = wrap(poses[g, 2] - prior_mean[2])
+        maha = 0.0
+        for i in range(3):
+            for j in range(3):
+                maha += d[i] * inv[i, j] * d[j]
+        log_tau[g] = log_likelihood[g] - 0.5 * maha - 0.5 * math.log(det)
+        top = max(top, log_tau[g])
+    total = 0.0
+    for g in range(m):
+        log_tau[g] = math.exp(log_tau[g] - top)  # now the unnormalised weights
+        total += log_tau[g]
+    centre = m // 2  # offsets from the lattice centre: no wrap
+    mean_off = np.zeros(3)
+    for g in range(m):
+        for i in range(3):
+            mean_off[i] += log_tau[g] / total * (poses[g, i] - poses[centre, i])
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for g in range(m):
+                di = poses[g, i] - poses[centre, i] - mean_off[i]
+                dj = poses[g, j] - poses[centre, j] - mean_off[j]
+                acc += log_tau[g] / total * di * dj
+            cov[i, j] = acc + (steps[i] * steps[i] / 12.0 if i == j else 0.0)
+    for i in range(3):
+        mu[i] = poses[centre, i] + mean_off[i]
+    mu[2] = wrap(mu[2])
+    return top + math.log(total)
+
+
+@njit(cache=True, nogil=True)
 def gaussian_fit(
     poses: np.ndarray,
     log_likelihood: np.ndarray,
@@ -67,24 +113,18 @@ def gaussian_fit(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per particle, the Gaussian fit of likelihood × prior on a lattice (module doc, 3).
 
-    poses (M, 3) the lattice, log_likelihood (M,) at each, prior_mean (N, 3), prior_cov
-    (N, 3, 3) (positive definite), steps (3,) the lattice steps. Returns (μ (N, 3), C
-    (N, 3, 3), log η (N,)); μ's heading is wrapped.
+    poses (M, 3) the lattice (centred on poses[M // 2]), log_likelihood (M,) at each,
+    prior_mean (N, 3), prior_cov (N, 3, 3) (positive definite), steps (3,) the lattice
+    steps. Returns (μ (N, 3), C (N, 3, 3), log η (N,)); μ's heading is wrapped.
     """
-    d = poses[None, :, :] - prior_mean[:, None, :]  # (N, M, 3)
-    d[..., 2] = wrap_angle(d[..., 2])
-    inv = np.linalg.inv(prior_cov)  # (N, 3, 3)
-    maha = np.einsum("nmi,nij,nmj->nm", d, inv, d)
-    _, logdet = np.linalg.slogdet(prior_cov)
-    log_tau = log_likelihood[None, :] - 0.5 * maha - 0.5 * logdet[:, None]
-    log_eta = logsumexp(log_tau, axis=1)
-    w = np.exp(log_tau - log_eta[:, None])  # (N, M), rows sum to 1
-    offsets = poses - poses[len(poses) // 2]  # relative to the lattice centre: no wrap
-    mean_off = w @ offsets  # (N, 3)
-    dev = offsets[None, :, :] - mean_off[:, None, :]
-    cov = np.einsum("nm,nmi,nmj->nij", w, dev, dev) + np.diag(np.square(steps) / 12.0)
-    mu = poses[len(poses) // 2] + mean_off
-    mu[:, 2] = wrap_angle(mu[:, 2])
+    n = prior_mean.shape[0]
+    mu = np.empty((n, 3))
+    cov = np.empty((n, 3, 3))
+    log_eta = np.empty(n)
+    for k in range(n):
+        log_eta[k] = fit_one(
+            poses, log_likelihood, prior_mean[k], prior_cov[k], steps, mu[k], cov[k]
+        )
     return mu, cov, log_eta
 
 

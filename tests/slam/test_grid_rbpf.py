@@ -20,7 +20,7 @@ from hardware.geometry import between
 from mapping.grid import HitCentroidGrid, OccupancyGrid
 from mapping.scan_points import scan_to_observation
 from slam.base import LOCALIZERS, create
-from slam.grid_kernels import frame_log_likelihood, hill_climb
+from slam.grid_kernels import frame_log_likelihood, hill_climb, propose
 from slam.grid_rbpf import GridMatch, GridRbpf, GridRbpfConfig
 from slam.particle_filter import ParticleFilterConfig
 from slam.scan_proposal import gaussian_fit, lattice
@@ -89,11 +89,14 @@ def test_a_sharp_turn_is_matched_from_turned_starts(error_deg):
     def match(sigmas: float) -> np.ndarray:
         cfg = GridRbpfConfig(match=GridMatch(turn_starts_sigma=sigmas))
         rbpf = create("grid-rbpf", WalkerCalibration(), cfg)
-        c, m = rbpf.config, rbpf.config.match
-        pose, _ = rbpf._match(
-            args, pts, start, prior, (m.kernel_cells, m.sigma_m, c.z_hit, c.z_rand)
+        params, fit_steps = rbpf._match_params()
+        turn = rbpf._turn(prior)
+        min_points = rbpf.config.min_points
+        pose, _, matched = propose(
+            *args, pts, start, prior, turn, params, fit_steps, min_points, np.zeros(3)
         )
         assert rbpf.counts["turn_starts"] == (1 if sigmas else 0)
+        assert matched or not sigmas  # without the turned starts it may match nothing
         return between(true, pose)
 
     alone, turned = match(0.0), match(1.5)

@@ -1,0 +1,42 @@
+"""Small compiled (numba) helpers the filters' kernels share: an angle wrapped to (−π, π]
+and the inverse of a 2×2 or 3×3 matrix."""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+TWO_PI = 2.0 * math.pi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def wrap(a: float) -> float:
+    """(−π, π], as hardware.geometry.wrap_angle."""
+    return math.pi - ((math.pi - a) % TWO_PI)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def inverse(a, d, out) -> float:
+    """out = a⁻¹ of a symmetric d×d (d = 2 or 3) matrix by its adjugate; returns det a."""
+    if d == 2:
+        det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
+        out[0, 0] = a[1, 1] / det
+        out[1, 1] = a[0, 0] / det
+        out[0, 1] = -a[0, 1] / det
+        out[1, 0] = -a[1, 0] / det
+        return det
+    c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
+    c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
+    c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
+    det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
+    out[0, 0] = c00 / det
+    out[1, 0] = c01 / det
+    out[2, 0] = c02 / det
+    out[0, 1] = (a[0, 2] * a[2, 1] - a[0, 1] * a[2, 2]) / det
+    out[1, 1] = (a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]) / det
+    out[2, 1] = (a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]) / det
+    out[0, 2] = (a[0, 1] * a[1, 2] - a[0, 2] * a[1, 1]) / det
+    out[1, 2] = (a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]) / det
+    out[2, 2] = (a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]) / det
+    return det
