@@ -28,7 +28,7 @@ from slam.kernel_math import wrap
 from slam.scan_proposal import fit_one
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def point_log_likelihood(
     grid: tuple,
     x: float,
@@ -45,19 +45,20 @@ def point_log_likelihood(
     ci = math.floor(x / resolution)
     cj = math.floor(y / resolution)
     best = math.inf
-    for j in range(cj - kernel, cj + kernel + 1):
+    for j in range(max(cj - kernel, j0), min(cj + kernel + 1, j0 + ny)):
         r = j - j0
-        if r < 0 or r >= ny:
-            continue
-        for i in range(ci - kernel, ci + kernel + 1):
+        dy0 = (j + 0.5) * resolution - y
+        for i in range(max(ci - kernel, i0), min(ci + kernel + 1, i0 + nx)):
             c = i - i0
-            if c < 0 or c >= nx or log_odds[r, c] <= occupied_log_odds:
+            if log_odds[r, c] <= occupied_log_odds:
                 continue
             dx = (i + 0.5) * resolution - x
-            dy = (j + 0.5) * resolution - y
-            if centroids and hits[r, c] > 0:
-                dx += hit_x[r, c] / hits[r, c]
-                dy += hit_y[r, c] / hits[r, c]
+            dy = dy0
+            if centroids:
+                h = hits[r, c]
+                if h > 0:
+                    dx += hit_x[r, c] / h
+                    dy += hit_y[r, c] / h
             best = min(best, dx * dx + dy * dy)
     if best == math.inf:
         return math.log(z_rand), False
@@ -236,35 +237,36 @@ def propose(
     points: np.ndarray,
     start: np.ndarray,
     prior_cov: np.ndarray,
-    turn: float,
+    turns: np.ndarray,
     match: tuple,
     fit_steps: np.ndarray,
     min_points: int,
     e: np.ndarray,
-) -> tuple[np.ndarray, float, bool]:
+) -> tuple[np.ndarray, float, bool, int]:
     """One particle's improved proposal against its own map (slam.grid_rbpf, steps 1-2):
-    the hill climb from the odometry pose `start` (and, when `turn` > 0, from it turned
-    by ± turn, the best of the climbs kept); when at least `min_points` points matched,
-    the Gaussian fit of likelihood × prior on the 3×3×3 lattice of `fit_steps` around
-    the match (slam.scan_proposal.fit_one), the pose drawn from it with the standard
-    normals e (3,), log η plus the lattice cell's log volume; otherwise the pose drawn
-    from the prior N(start, prior_cov) and the frame's log-likelihood there.
+    the hill climb from the odometry pose `start` and from it turned by each of `turns`
+    (rad), the best of the climbs kept; when at least `min_points` points matched, the
+    Gaussian fit of likelihood × prior on the 3×3×3 lattice of `fit_steps` around the
+    match (slam.scan_proposal.fit_one), the pose drawn from it with the standard normals
+    e (3,), log η plus the lattice cell's log volume; otherwise the pose drawn from the
+    prior N(start, prior_cov) and the frame's log-likelihood there.
 
     match = (step_m, step_rad, refinements, kernel_cells, sigma_m, z_hit, z_rand,
-    beam_weight). Returns (pose, log weight, matched)."""
+    beam_weight). Returns (pose, log weight, matched, the winning start: 0 the odometry
+    pose, k turned by turns[k − 1])."""
     step_m, step_rad, refinements, kernel, sigma, z_hit, z_rand, beam_weight = match
     best_pose, best_score, best_matched = hill_climb(
         grid, points, start, step_m, step_rad, refinements, kernel, sigma, z_hit, z_rand
     )
-    if turn > 0.0:
-        for sign in (1.0, -1.0):
-            s = start.copy()
-            s[2] += sign * turn
-            pose, score, matched = hill_climb(
-                grid, points, s, step_m, step_rad, refinements, kernel, sigma, z_hit, z_rand
-            )
-            if score > best_score:
-                best_pose, best_score, best_matched = pose, score, matched
+    winner = 0
+    for k in range(turns.shape[0]):
+        s = start.copy()
+        s[2] += turns[k]
+        pose, score, matched = hill_climb(
+            grid, points, s, step_m, step_rad, refinements, kernel, sigma, z_hit, z_rand
+        )
+        if score > best_score:
+            best_pose, best_score, best_matched, winner = pose, score, matched, k + 1
     mean = np.empty(3)
     cov = np.empty((3, 3))
     if best_matched >= min_points:
@@ -296,7 +298,7 @@ def propose(
         log_w = (
             beam_weight * frame_log_likelihood(grid, points, pose, kernel, sigma, z_hit, z_rand)[0]
         )
-    return pose, log_w, best_matched >= min_points
+    return pose, log_w, best_matched >= min_points, winner
 
 
 @njit(cache=True, nogil=True)

@@ -67,6 +67,10 @@ class GridMatch:
     scans), the match also starts from the odometry pose turned by ± that much and keeps
     the best of the three climbs (on the Intel log a 10° odometry error in one turn is
     beyond the climb's reach: 2 of 3 seeds broke there without it); 0 disables;
+    shared_turn_starts: the most probable particle tries both turned starts and the
+    others only the one it chose (none when its own start won): the odometry's heading
+    error is the same for every particle, and two extra climbs per particle were most
+    of the filter's time on Intel; False: every particle tries both;
     fit_step_m / fit_step_rad: the lattice the proposal's Gaussian is fitted on."""
 
     kernel_cells: int = 1
@@ -76,6 +80,7 @@ class GridMatch:
     step_rad: float = 0.05
     refinements: int = 5
     turn_starts_sigma: float = 1.5
+    shared_turn_starts: bool = True
     fit_step_m: float = 0.02
     fit_step_rad: float = 0.01
 
@@ -211,18 +216,23 @@ class GridRbpf(ParticleFilter):
         new = np.empty_like(self.particles)
         log_eta = np.zeros(len(self.particles))
         scored = False
-        for i, grid in enumerate(self._maps):
-            args = self._score_args(grid)
+        turns = self._turns(prior[0])
+        # the most probable particle first: with shared turned starts, the start it
+        # chose is the only one the others try besides their own
+        order = np.argsort(-self._weights, kind="stable")
+        for i in order:
+            args = self._score_args(self._maps[i])
             if args is None or len(points) < c.min_points:
                 new[i] = draw(self.particles[i], prior[i], e[i])
                 continue
             scored = True
-            turn = self._turn(prior[i])
-            new[i], log_eta[i], matched = propose(
-                *args, points, self.particles[i], prior[i], turn, params, fit_steps,
+            new[i], log_eta[i], matched, won = propose(
+                *args, points, self.particles[i], prior[i], turns, params, fit_steps,
                 c.min_points, e[i],
             )  # fmt: skip
             self.counts["scan_matches" if matched else "unmatched"] += 1
+            if len(turns) > 1 and c.match.shared_turn_starts:
+                turns = turns[won - 1 : won] if won else turns[:0]
         correction = new - self.particles
         correction[:, 2] = wrap_angle(correction[:, 2])
         self.corrections.snapshot(msg.t, correction)
@@ -245,15 +255,16 @@ class GridRbpf(ParticleFilter):
         fit_steps = np.array([m.fit_step_m, m.fit_step_m, m.fit_step_rad])
         return (*params, c.z_hit, c.z_rand, m.beam_weight), fit_steps
 
-    def _turn(self, prior: np.ndarray) -> float:
-        """How far to turn the match's extra starts (± turn_starts_sigma heading σ of the
-        prior) when that is at least two first angular steps, else 0 (one start)."""
+    def _turns(self, prior: np.ndarray) -> np.ndarray:
+        """The turned starts of this frame's match: ± turn_starts_sigma heading σ of the
+        odometry prior (the same for every particle) when that is at least two first
+        angular steps, else none."""
         c = self.config.match
         offset = c.turn_starts_sigma * math.sqrt(max(float(prior[2, 2]), 0.0))
         if offset < 2.0 * c.step_rad:  # nearer starts the climb reaches by itself
-            return 0.0
+            return np.zeros(0)
         self.counts["turn_starts"] += 1
-        return offset
+        return np.array([offset, -offset])
 
     def _scoring_points(self, obs) -> np.ndarray:
         """Up to max_beams of the frame's obstacle points within max_range_m (walker frame),

@@ -90,10 +90,10 @@ def test_a_sharp_turn_is_matched_from_turned_starts(error_deg):
         cfg = GridRbpfConfig(match=GridMatch(turn_starts_sigma=sigmas))
         rbpf = create("grid-rbpf", WalkerCalibration(), cfg)
         params, fit_steps = rbpf._match_params()
-        turn = rbpf._turn(prior)
+        turns = rbpf._turns(prior)
         min_points = rbpf.config.min_points
-        pose, _, matched = propose(
-            *args, pts, start, prior, turn, params, fit_steps, min_points, np.zeros(3)
+        pose, _, matched, _ = propose(
+            *args, pts, start, prior, turns, params, fit_steps, min_points, np.zeros(3)
         )
         assert rbpf.counts["turn_starts"] == (1 if sigmas else 0)
         assert matched or not sigmas  # without the turned starts it may match nothing
