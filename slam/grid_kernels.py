@@ -252,12 +252,14 @@ def propose(
     prior N(start, prior_cov) and the frame's log-likelihood there.
 
     match = (step_m, step_rad, refinements, kernel_cells, sigma_m, z_hit, z_rand,
-    beam_weight). Returns (pose, log weight, matched, the winning start: 0 the odometry
-    pose, k turned by turns[k − 1])."""
+    beam_weight). Returns (pose, log weight, matched, the winning start: k when the climb
+    turned by turns[k − 1] found a better optimum more than a first step away from the
+    straight climb's, else 0)."""
     step_m, step_rad, refinements, kernel, sigma, z_hit, z_rand, beam_weight = match
     best_pose, best_score, best_matched = hill_climb(
         grid, points, start, step_m, step_rad, refinements, kernel, sigma, z_hit, z_rand
     )
+    straight = best_pose
     winner = 0
     for k in range(turns.shape[0]):
         s = start.copy()
@@ -266,7 +268,11 @@ def propose(
             grid, points, s, step_m, step_rad, refinements, kernel, sigma, z_hit, z_rand
         )
         if score > best_score:
-            best_pose, best_score, best_matched, winner = pose, score, matched, k + 1
+            best_pose, best_score, best_matched = pose, score, matched
+            # a win only if it found another optimum, not the straight climb's
+            moved = math.hypot(pose[0] - straight[0], pose[1] - straight[1])
+            far = abs(wrap(pose[2] - straight[2])) > step_rad or moved > step_m
+            winner = k + 1 if far else 0
     mean = np.empty(3)
     cov = np.empty((3, 3))
     if best_matched >= min_points:

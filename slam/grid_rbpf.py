@@ -158,7 +158,7 @@ class GridRbpf(ParticleFilter):
         self._variance: list[tuple[float, float, float]] = []  # (t, var xy, var θ)
         self._segment_totals: list[tuple[float, float]] = []  # at each frame
         self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
-        self.counts.update(scan_matches=0, unmatched=0, map_copies=0, turn_starts=0)
+        self.counts.update(scan_matches=0, unmatched=0, map_copies=0, turn_starts=0, turn_wins=0)
         self.attach_map(None)
 
     # -- the particles' maps --------------------------------------------------------------
@@ -233,6 +233,7 @@ class GridRbpf(ParticleFilter):
             self.counts["scan_matches" if matched else "unmatched"] += 1
             if len(turns) > 1 and c.match.shared_turn_starts:
                 turns = turns[won - 1 : won] if won else turns[:0]
+                self.counts["turn_wins"] += bool(won)
         correction = new - self.particles
         correction[:, 2] = wrap_angle(correction[:, 2])
         self.corrections.snapshot(msg.t, correction)
