@@ -151,7 +151,8 @@ class RangeBearings:
 
 @dataclass(frozen=True, slots=True)
 class VelocityOdometry:
-    """Forward speed [m/s] and yaw rate [rad/s] commanded or measured from t onwards."""
+    """Forward speed [m/s] and yaw rate [rad/s] commanded or measured from t onwards; both
+    NaN: the motion from t until the next message is not known (a gap in the odometry)."""
 
     t: float
     v: float

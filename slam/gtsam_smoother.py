@@ -168,7 +168,9 @@ class MatchGate:
     loop), clipped to window_xy_m and window_theta_rad (min, max); accepted when its
     inlier fraction ≥ min_inlier_fraction, conflict fraction ≤ max_conflict_fraction and
     ambiguity ≤ max_ambiguity (slam.scan_matching.MatchResult); its factor robust with
-    `robust` ("huber", "cauchy", "none") at robust_k."""
+    `robust` ("huber", "cauchy", "none") at robust_k. unknown_window (xy m, θ rad): the
+    search window instead when the odometry did not measure part of the motion since
+    the last kept scan (a gap: slam.motion.Increment.unknown)."""
 
     window_sigmas: float = 3.0
     window_xy_m: tuple[float, float] = (0.1, 0.5)
@@ -178,6 +180,7 @@ class MatchGate:
     max_ambiguity: float = 0.9
     robust: RobustKernel = RobustKernel.HUBER
     robust_k: float = 1.345
+    unknown_window: tuple[float, float] = (1.0, math.pi)
 
     def __post_init__(self) -> None:
         coerce(self, robust=RobustKernel)
@@ -389,6 +392,7 @@ class GtsamSmoother(Localizer):
         self._marginal: np.ndarray | None = None
         self._cache: tuple[int, Trajectory] | None = None
         self.counts = {"keyframes": 0, "landmark_factors": 0, "without_id": 0, "updates": 0}
+        self.counts["odometry_gaps"] = 0
         if config.absolute.enabled:
             self.counts.update(compass_factors=0, position_factors=0)
         self._tags = config.observation == "tag-pose"
@@ -399,6 +403,8 @@ class GtsamSmoother(Localizer):
         self._scans: list[_ScanKeyframe] = []
         self._scan_delta = np.zeros(3)  # odometry since the last kept scan, and its cov
         self._scan_cov = np.zeros((3, 3))
+        self._scan_gap = False  # the odometry since the last kept scan has a gap
+        self._unknown = np.zeros((3, 3))  # motion not measured since the keyframe: its cov
         self._scan_kf0 = 0  # the keyframe of the last kept scan
         self._odo_scale = np.ones(3)  # adaptive σ multipliers of the odometry (x, y, θ)
         self._odo_z: list[np.ndarray] = []  # normalised squared odometry errors
@@ -458,7 +464,15 @@ class GtsamSmoother(Localizer):
             self._observe(obs)
 
     def _move(self, inc: Increment) -> None:
-        """Integrate an odometry increment (slip-corrected with the latest k)."""
+        """Integrate an odometry increment (slip-corrected with the latest k); a motion the
+        odometry did not measure adds its covariance, unscaled, to the next odometry
+        factor, and widens the next sequential scan match's search."""
+        if inc.unknown:
+            var_s, var_th = np.diag(inc.cov)
+            self._unknown += np.diag([var_s, var_s, var_th])
+            self._scan_gap = True
+            self.counts["odometry_gaps"] += 1
+            return
         if self._slip:
             ds, dth, jk = increment_with_slip(inc, self._k, self.calibration.track_m)
             self._integrate(float(ds), float(dth), inc.cov, jk)
@@ -538,10 +552,14 @@ class GtsamSmoother(Localizer):
         s = self._odo_scale
         return (model_cov + floor) * np.outer(s, s)
 
-    def _odometry_factor(self, a: int, delta: np.ndarray, model_cov: np.ndarray, slip=None):
+    def _odometry_factor(
+        self, a: int, delta: np.ndarray, model_cov: np.ndarray, slip=None, unknown=None
+    ):
         """Keyframe a → a + 1; slip: (∂delta/∂k, the k it was integrated with), making
-        it a function of S(a) (slam.gtsam_slip), or None."""
-        noise = gtsam.noiseModel.Gaussian.Covariance(self._odometry_cov(model_cov))
+        it a function of S(a) (slam.gtsam_slip), or None; unknown: the covariance of
+        motion the odometry did not measure (added unscaled)."""
+        cov = self._odometry_cov(model_cov) + (0.0 if unknown is None else unknown)
+        noise = gtsam.noiseModel.Gaussian.Covariance(cov)
         if slip is not None:
             return slip_odometry_factor(X(a), X(a + 1), S(a), delta, *slip, noise)
         return gtsam.BetweenFactorPose2(X(a), X(a + 1), gtsam.Pose2(*delta), noise)
@@ -551,10 +569,13 @@ class GtsamSmoother(Localizer):
         slip = (self._delta_jk, self._k.copy()) if self._slip else None
         if self.config.scan_matching and not self._adapted:
             # kept until the odometry noise is adapted, then replaced (see _adapt_odometry)
-            record = [self._kf, self._delta.copy(), self._delta_cov.copy(), slip]
+            unknown = self._unknown.copy()
+            record = [self._kf, self._delta.copy(), self._delta_cov.copy(), slip, unknown]
             self._early_odometry.append(record)
             self._pending.append((self._graph.size(), self._early_odometry[-1]))
-        self._graph.add(self._odometry_factor(self._kf, self._delta, self._delta_cov, slip))
+        factor = self._odometry_factor(self._kf, self._delta, self._delta_cov, slip, self._unknown)
+        self._graph.add(factor)
+        self._unknown = np.zeros((3, 3))
         self._values.insert(X(k), gtsam.Pose2(*compose(self._kf_pose, self._delta)))
         if self._slip:
             walk = self.config.slip.random_walk_per_s * math.sqrt(max(t - self._kf_t[-1], 0.0))
@@ -667,6 +688,7 @@ class GtsamSmoother(Localizer):
         if self._scans and not (
             math.hypot(self._scan_delta[0], self._scan_delta[1]) >= c.scan.keyframe_distance_m
             or abs(self._scan_delta[2]) >= c.scan.keyframe_angle_rad
+            or self._scan_gap  # the odometry cannot tell whether it moved
         ):
             return
         t0 = time.perf_counter()
@@ -677,7 +699,8 @@ class GtsamSmoother(Localizer):
         if np.any(self._delta != 0):
             self._new_keyframe(msg.t)
         prev = self._scans[-1] if self._scans else None
-        odo = (self._scan_delta, self._scan_cov, max(self._kf - self._scan_kf0, 1))
+        odo = (self._scan_delta, self._scan_cov, max(self._kf - self._scan_kf0, 1), self._scan_gap)
+        self._scan_gap = False
         self._scans.append(_ScanKeyframe(self._kf, msg.t, pts))
         self._scan_delta = np.zeros(3)
         self._scan_cov = np.zeros((3, 3))
@@ -707,7 +730,7 @@ class GtsamSmoother(Localizer):
         self._graph.add(gtsam.BetweenFactorPose2(X(a), X(b), gtsam.Pose2(*res.pose), noise))
 
     def _sequential(
-        self, poses: np.ndarray, odo: np.ndarray, odo_cov: np.ndarray, keyframes: int
+        self, poses: np.ndarray, odo: np.ndarray, odo_cov: np.ndarray, keyframes: int, gap: bool
     ) -> None:
         c = self.config
         n = len(self._scans)
@@ -719,6 +742,8 @@ class GtsamSmoother(Localizer):
             np.clip(c.scan.gate.window_sigmas * max(sd[0], sd[1]), *c.scan.gate.window_xy_m)
         )
         wth = float(np.clip(c.scan.gate.window_sigmas * sd[2], *c.scan.gate.window_theta_rad))
+        if gap:
+            wxy, wth = c.scan.gate.unknown_window
         guess = relative_guess(poses[prev.kf], poses[cur.kf])
         res = match(ref, cur.scan, guess, wxy, wth, c.scan_match)
         if res.accepted(
@@ -729,7 +754,8 @@ class GtsamSmoother(Localizer):
             self._add_match(prev.kf, cur.kf, res, c.scan.gate.robust, c.scan.gate.robust_k)
             self.counts["scan_factors"] += 1
             self._flush()
-            if c.odometry_adaptive and res.constraint >= c.scan_match.degenerate_constraint:
+            adapt = c.odometry_adaptive and not gap  # (a gap's odometry says nothing)
+            if adapt and res.constraint >= c.scan_match.degenerate_constraint:
                 self._adapt_odometry(odo, model, res)
         else:
             self.counts["scan_rejected"] += 1
@@ -749,9 +775,9 @@ class GtsamSmoother(Localizer):
                 self._adapted = True
                 self._flush()
                 graph = gtsam.NonlinearFactorGraph()
-                for a, delta, cov, slip, _ in self._early_odometry:
-                    graph.add(self._odometry_factor(a, delta, cov, slip))
-                remove = [rec[4] for rec in self._early_odometry]
+                for a, delta, cov, slip, unknown, _ in self._early_odometry:
+                    graph.add(self._odometry_factor(a, delta, cov, slip, unknown))
+                remove = [rec[5] for rec in self._early_odometry]
                 self.isam.update(graph, gtsam.Values(), remove)
                 self._early_odometry = []
                 self._after_update()
@@ -868,7 +894,7 @@ class GtsamSmoother(Localizer):
         # frame is already done by GTSAM (Pose2 tangent is body-frame); add delta's.
         c, s = math.cos(self._kf_pose[2]), math.sin(self._kf_pose[2])
         rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        cov = rot @ (self._marginal + self._delta_cov) @ rot.T
+        cov = rot @ (self._marginal + self._delta_cov + self._unknown) @ rot.T
         return PoseEstimate(t, compose(self._kf_pose, self._delta), cov)
 
     def trajectory(self) -> Trajectory:

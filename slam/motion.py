@@ -183,6 +183,8 @@ class MotionNoise:
     brake_aware: inflate (and optionally de-bias) a braked wheel.
     gyro: the turn from a yaw-rate gyro, its bias estimated online (`slam.gyro`); off by
     default.
+    unknown_sigma: (σ of ds [m], σ of dθ [rad]) of a motion the odometry did not measure
+    (velocity odometry of NaN: a gap in a log's odometry); a full turn by default.
     brake_delay_s: None: an increment's brake level is the last command's; a number:
     each command takes effect this much later (loop latency and brake lag; the simulator
     has 0.03 s + a 0.025 s time constant) and an increment's level is the time average
@@ -201,9 +203,12 @@ class MotionNoise:
     bias_per_full_brake: float = 0.0
     gyro: GyroFusion = field(default_factory=GyroFusion)
     brake_delay_s: float | None = None
+    unknown_sigma: tuple[float, float] = (1.0, math.pi)
 
     def __post_init__(self) -> None:
         coerce(self, velocity_model=VelocityModel)
+        if len(self.unknown_sigma) != 2 or not min(self.unknown_sigma) > 0:
+            raise ValueError(f"unknown_sigma must be two values > 0, got {self.unknown_sigma}")
         if self.brake_delay_s is not None and not 0.0 <= self.brake_delay_s < math.inf:
             raise ValueError(f"brake_delay_s must be >= 0 (or None), got {self.brake_delay_s}")
         if len(self.distance_walk) != 4 or min(self.distance_walk) < 0:
@@ -226,7 +231,9 @@ class Increment:
     Also what a slip estimate needs (`slip_corrected`): wheels, each wheel's distance [m]
     (left, right) as counted by its encoder, before any brake-aware de-biasing (from
     velocity odometry, the distances its (v, ω) stand for on the calibration's track);
-    brake_level, each brake's commanded level in [0, 1] over the increment."""
+    brake_level, each brake's commanded level in [0, 1] over the increment; unknown: the
+    odometry did not measure this motion (a gap: velocity odometry of NaN), so ds = dθ = 0
+    and cov is MotionNoise.unknown_sigma's."""
 
     t: float
     dt: float
@@ -235,6 +242,7 @@ class Increment:
     cov: np.ndarray
     wheels: tuple[float, float] | None = None
     brake_level: tuple[float, float] = (0.0, 0.0)
+    unknown: bool = False
 
 
 def split_increment(inc: Increment, t: float) -> tuple[Increment, Increment]:
@@ -256,6 +264,7 @@ def split_increment(inc: Increment, t: float) -> tuple[Increment, Increment]:
                 share * inc.cov,
                 wheels,
                 inc.brake_level,
+                inc.unknown,
             )
         )
     return parts[0], parts[1]
@@ -392,6 +401,9 @@ class OdometryModel:
         if dt <= 0:
             return None
         n = self.noise
+        if math.isnan(prev.v) or math.isnan(prev.omega):  # the motion is not known
+            cov = np.diag(np.square(n.unknown_sigma))
+            return Increment(msg.t, dt, 0.0, 0.0, cov, None, self._levels(prev.t, msg.t), True)
         ds, dth = prev.v * dt, prev.omega * dt
         if n.velocity_model == "distance":
             k1, k2, k3, k4 = n.distance_walk

@@ -39,7 +39,9 @@ without resets is a raw log (its ODOM poses form one chain, no ground truth).
   reproduces the relative motion of the ODOM lines between two scans exactly.
 - Where the raw motion is unknown (a segment with no ODOM line besides the reset, as in
   most of orebro; or a scan whose last ODOM line has another timestamp) a
-  VelocityOdometry(t, 0, 0) is emitted: dead reckoning stands still there (counted in
+  VelocityOdometry(t, NaN, NaN) is emitted: the motion until the next ODOM line is not
+  known (dead reckoning stands still there; a localizer's motion model gives it
+  MotionNoise.unknown_sigma, and gtsam's scan matching searches a full turn; counted in
   metadata "dataset" "odometry" "gaps").
 
 Odometry pieces (option `odometry`). One constant-(v, ω) arc only reaches points whose
@@ -688,11 +690,11 @@ def _odometry(log: _Log, mode: str) -> tuple[np.ndarray, dict[str, Any]]:
         for (i, j), p, m in zip(pairs, pieces, rel, strict=True):
             _emit(rows, pts[i].t, pts[j].t, p, m[2], stats)
         joined = r + 1 < len(runs) and runs[r + 1][0] == run[-1]
-        if not joined:
-            # a gap (raw motion unknown until the next run) or the end of the log
+        if r + 1 < len(runs) and not joined:  # a gap: the raw motion is not known
+            rows.append((pts[run[-1]].t, math.nan, math.nan))
+            stats.gaps += 1
+        elif not joined:  # the end of the log
             rows.append((pts[run[-1]].t, 0.0, 0.0))
-            if r + 1 < len(runs):
-                stats.gaps += 1
     stats.messages = len(rows)
     return np.array(rows, dtype=np.float64).reshape(-1, 3), stats.to_dict()
 

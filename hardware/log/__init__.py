@@ -87,7 +87,8 @@ JSON integers. Units are SI. Schemas (all fields required):
     walker.RangeBearings      t [s], landmark_ids [list of int, −1: unknown], ranges_m [list,
                               m], bearings_rad [list, rad]: entry i of each list is one
                               landmark seen at t (the batched form of RangeBearing)
-    walker.VelocityOdometry   t [s], v [m/s forward], omega [rad/s yaw rate]
+    walker.VelocityOdometry   t [s], v [m/s forward], omega [rad/s yaw rate]; both "NaN":
+                              the motion until the next message is not known (a gap)
     walker.GyroRate           t [s], rate_rad_s [rad/s: the gyro's z rate, CCW positive, raw
                               (its bias and scale error included), the mean over the
                               interval since its previous sample]

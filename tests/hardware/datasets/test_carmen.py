@@ -21,7 +21,7 @@ from hardware.datasets.carmen import exact_pieces, isotonic, spread_ties
 from hardware.log import read_log
 from hardware.messages import GroundTruthPose, LaserScan, VelocityOdometry
 from slam.base import create
-from slam.motion import arc_increment
+from slam.motion import MotionNoise, OdometryModel, arc_increment
 
 
 def relative(a, b):
@@ -202,12 +202,15 @@ def test_segment_without_odometry_is_a_gap(tmp_path):
     )
     ds = open_dataset("carmen", write_text(tmp_path / "g.log", log))
     odo = [(m.t, m.v, m.omega) for m in ds.messages([VelocityOdometry])]
-    assert odo == [
-        (0.5, pytest.approx(0.2), 0.0),
-        (1.0, 0.0, 0.0),  # unknown motion between the scans: stand still
-        (2.0, pytest.approx(0.2), 0.0),
-        (2.5, 0.0, 0.0),
-    ]
+    assert odo[0] == (0.5, pytest.approx(0.2), 0.0)
+    assert odo[1][0] == 1.0 and math.isnan(odo[1][1]) and math.isnan(odo[1][2])  # unknown
+    assert odo[2:] == [(2.0, pytest.approx(0.2), 0.0), (2.5, 0.0, 0.0)]  # the log's end
+    # dead reckoning stands still over the gap; a motion model knows it does not know
+    model = OdometryModel(ds.calibration, MotionNoise())
+    incs = [model.increment(m) for m in ds.messages([VelocityOdometry])][1:]
+    assert [i.unknown for i in incs] == [False, True, False]
+    assert incs[1].ds == 0.0 and incs[1].dtheta == 0.0
+    assert np.sqrt(np.diag(incs[1].cov)).tolist() == [1.0, math.pi]
     assert ds.metadata["dataset"]["odometry"]["gaps"] == 1
     assert ds.metadata["dataset"]["odometry"]["scans_without_odometry"] == 1
     # 3 beams over 180°: 90° steps
