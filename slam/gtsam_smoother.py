@@ -191,13 +191,16 @@ class SequentialScans:
     """Sequential scan matching: max_range_m / min_range_m: laser returns used as points
     (SICK LMS: reliable to ~20 m; the walker's own frame can be cut with a minimum);
     keyframe_distance_m / keyframe_angle_rad: when a scan is kept; submap_size: the
-    kept scans a new one is matched to; gate: the match's search and acceptance."""
+    kept scans a new one is matched to (10, chosen on the edmonton, acapulco, fhw and
+    csail logs against GMapping's poses, from 3, 10, 20: 3 let edmonton and acapulco
+    drift by metres; checked on freiburg-101, seattle, belgioioso and Intel, which it
+    improves or keeps: BENCHMARKS.md); gate: the match's search and acceptance."""
 
     max_range_m: float = 20.0
     min_range_m: float = 0.0
     keyframe_distance_m: float = 0.3
     keyframe_angle_rad: float = 0.2
-    submap_size: int = 3
+    submap_size: int = 10
     gate: MatchGate = field(default_factory=MatchGate)
 
     def __post_init__(self) -> None:
