@@ -101,7 +101,9 @@ class ScanMatchConfig:
     score of a query point in seen-free space (farther than free_margin_m from every
     reference point);
     coarse_step_m, angle_step_rad: its translation and heading steps; refine_candidates:
-    how many of its best distinct poses ICP refines.
+    how many of its best distinct poses ICP refines; multires_offsets, multires_blocks:
+    a window wider than multires_offsets coarse steps either way is searched on two
+    levels, refining the multires_blocks best blocks (`correlative_search`).
     sigma_floor, covariance_scale, degenerate_constraint, degenerate_sigma_m: the
     match covariance (module docstring).
     min_points: fewer query or reference points than this: no match.
@@ -123,6 +125,8 @@ class ScanMatchConfig:
     coarse_step_m: float = 0.1
     angle_step_rad: float = math.radians(1.0)
     refine_candidates: int = 3
+    multires_offsets: int = 15
+    multires_blocks: int = 50
     sigma_floor: tuple[float, float, float] = (0.02, 0.02, math.radians(0.5))
     covariance_scale: float = 1.0
     degenerate_constraint: float = 0.02
@@ -528,6 +532,22 @@ def _evaluate(
 # correlative search
 
 
+def _grid_scores(
+    flat: np.ndarray,
+    shape: tuple[int, int],
+    cells: np.ndarray,
+    x_offs: np.ndarray,
+    y_offs: np.ndarray,
+) -> np.ndarray:
+    """Mean over the points of a flattened field (shape H×W) at their cells (n, 2:
+    column, row) shifted by every (y, x) cell offset: (len(y_offs), len(x_offs));
+    lookups outside the field are clipped to its (zero) border."""
+    h, w = shape
+    cols = np.clip(cells[:, 0, None] + x_offs[None, :], 0, w - 1)
+    rows = np.clip(cells[:, 1, None] + y_offs[None, :], 0, h - 1)
+    return flat[rows[:, :, None] * w + cols[:, None, :]].mean(axis=0)
+
+
 def correlative_search(
     ref: Reference,
     query: np.ndarray,
@@ -538,7 +558,12 @@ def correlative_search(
     count: int | None = None,
 ) -> list[tuple[np.ndarray, float]]:
     """The best `count` distinct poses (and their scores, the mean likelihood of the
-    query points) within guess ± window_xy (x and y) and ± window_theta."""
+    query points) within guess ± window_xy (x and y) and ± window_theta.
+
+    A window of more than `multires_offsets` coarse steps either way is searched on two
+    levels: blocks of k × k coarse steps scored on the field max-filtered over a block
+    (an upper bound of every pose in it), then every coarse step of the
+    `multires_blocks` best blocks (per heading and block)."""
     cfg = config or ref.config
     query = _points(query)
     count = cfg.refine_candidates if count is None else count
@@ -547,32 +572,45 @@ def correlative_search(
     # best fine translation within half a coarse step either way
     pooled = ndimage.maximum_filter(lik, size=step_cells + 1 - (step_cells % 2), mode="constant")
     nt = math.floor(window_xy / (step_cells * res) + 1e-9)
-    offs = np.arange(-nt, nt + 1) * step_cells  # cell offsets
     na = math.floor(window_theta / cfg.angle_step_rad + 1e-9)
     angles = guess[2] + np.arange(-na, na + 1) * cfg.angle_step_rad
-    h, w = pooled.shape
     flat = pooled.ravel()
-    scores = np.empty((len(angles), len(offs), len(offs)))
-    for a_i, th in enumerate(angles):
-        p = query @ _rot(th).T + guess[:2]
-        ij = np.floor((p - lo) / res).astype(np.int64)  # (n, 2): column, row
-        cols = np.clip(ij[:, 0, None] + offs[None, :], 0, w - 1)  # (n, T) x offsets
-        rows = np.clip(ij[:, 1, None] + offs[None, :], 0, h - 1)  # (n, T) y offsets
-        idx = rows[:, :, None] * w + cols[:, None, :]  # (n, Ty, Tx)
-        scores[a_i] = flat[idx].mean(axis=0)
-    order = np.argsort(scores, axis=None)[::-1][:5000]
+    cells = [
+        np.floor((query @ _rot(th).T + guess[:2] - lo) / res).astype(np.int64) for th in angles
+    ]
+    if nt <= cfg.multires_offsets:
+        offs = np.arange(-nt, nt + 1) * step_cells  # cell offsets
+        scores = np.stack([_grid_scores(flat, pooled.shape, c, offs, offs) for c in cells])
+        a_i, iy, ix = np.unravel_index(np.argsort(scores, axis=None)[::-1][:5000], scores.shape)
+        found = zip(scores[a_i, iy, ix], a_i, offs[iy], offs[ix], strict=True)
+    else:
+        k = math.ceil(nt / cfg.multires_offsets)  # coarse steps per block side
+        block = k * step_cells
+        bound = ndimage.maximum_filter(lik, size=block + step_cells + 1, mode="constant").ravel()
+        centres = np.arange(-math.ceil(nt / k), math.ceil(nt / k) + 1) * block
+        upper = np.stack([_grid_scores(bound, lik.shape, c, centres, centres) for c in cells])
+        best = np.argsort(upper, axis=None)[::-1][: cfg.multires_blocks]
+        inner = np.arange(-(k // 2), k - k // 2) * step_cells
+        parts = []
+        for a_b, iy_b, ix_b in zip(*np.unravel_index(best, upper.shape), strict=True):
+            ys, xs = centres[iy_b] + inner, centres[ix_b] + inner
+            sc = _grid_scores(flat, pooled.shape, cells[a_b], xs, ys)
+            yy, xx = np.meshgrid(ys, xs, indexing="ij")
+            parts.append(
+                np.column_stack([sc.ravel(), np.full(sc.size, a_b), yy.ravel(), xx.ravel()])
+            )
+        table = np.concatenate(parts)
+        table = table[np.argsort(table[:, 0])[::-1][:5000]]
+        found = zip(table[:, 0], table[:, 1].astype(int), table[:, 2], table[:, 3], strict=True)
     out: list[tuple[np.ndarray, float]] = []
-    for k in order:
-        a_i, iy, ix = np.unravel_index(k, scores.shape)
-        pose = np.array(
-            [guess[0] + offs[ix] * res, guess[1] + offs[iy] * res, wrap_angle(angles[a_i])]
-        )
+    for score, a, oy, ox in found:
+        pose = np.array([guess[0] + ox * res, guess[1] + oy * res, wrap_angle(angles[a])])
         if all(
             math.hypot(*(pose[:2] - o[:2])) > 2 * cfg.coarse_step_m
             or abs(wrap_angle(pose[2] - o[2])) > 3 * cfg.angle_step_rad
             for o, _ in out
         ):
-            out.append((pose, float(scores[a_i, iy, ix])))
+            out.append((pose, float(score)))
             if len(out) >= count:
                 break
     return out

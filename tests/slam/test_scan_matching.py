@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from slam.gtsam_smoother import GtsamConfig
 from slam.scan_matching import (
     Reference,
     ScanMatchConfig,
+    correlative_search,
     depth_points,
     icp,
     laser_points,
@@ -85,6 +87,26 @@ def test_match_finds_a_far_start_with_partial_overlap_and_noise():
     trans, rot = _err(true, res.pose)
     assert trans < 0.02 and rot < math.radians(0.5)
     assert res.accepted(0.5, max_conflict_fraction=0.1, max_ambiguity=0.9)
+
+
+def test_a_wide_window_is_searched_on_two_levels_to_the_same_optimum():
+    """A 2.5 m × full-turn window (25 coarse steps either way: above multires_offsets)
+    goes through the block bound; its best pose is the exhaustive search's, and the
+    match from it is the truth."""
+    rng = np.random.default_rng(4)
+    a, b = np.array([2.0, 2.0, 0.0]), np.array([3.8, 3.4, 1.1])  # 2.3 m, 63° apart
+    ref = Reference(laser_points(render_scan(ROOM, a, noise_m=0.01, rng=rng)), CFG)
+    query = laser_points(render_scan(ROOM, b, noise_m=0.01, rng=rng), voxel_m=CFG.voxel_m)
+    wide = (2.5, math.pi)
+    two_levels = correlative_search(ref, query, np.zeros(3), *wide, CFG, count=1)
+    one_level = correlative_search(
+        ref, query, np.zeros(3), *wide, replace(CFG, multires_offsets=100), count=1
+    )
+    np.testing.assert_allclose(two_levels[0][0], one_level[0][0])
+    assert two_levels[0][1] == pytest.approx(one_level[0][1])
+    res = match(ref, query, np.zeros(3), *wide, CFG)
+    trans, rot = _err(between(a, b), res.pose)
+    assert trans < 0.02 and rot < math.radians(0.5)
 
 
 def test_unrelated_scans_are_rejected():
