@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 
@@ -116,6 +118,15 @@ def test_relation_errors_zero_for_exact_and_known_for_scaled():
     expected = 0.1 * np.hypot(*(gt.poses[j, :2] - gt.poses[i, :2]).T).mean()
     assert out["relations_trans_mean_m"] == pytest.approx(expected, rel=1e-6)
     assert out["relations_rot_mean_deg"] == pytest.approx(0.0, abs=1e-9)
+    # the distribution of the same errors
+    each = 0.1 * np.hypot(*(gt.poses[j, :2] - gt.poses[i, :2]).T)
+    assert out["relations_trans_median_m"] == pytest.approx(np.median(each), rel=1e-6)
+    assert out["relations_trans_p90_m"] == pytest.approx(np.percentile(each, 90), rel=1e-6)
+    assert out["relations_trans_max_m"] == pytest.approx(each.max(), rel=1e-6)
+    assert out["relations_rot_p99_deg"] == pytest.approx(0.0, abs=1e-9)
+    # no relation inside the estimate's span: counted, and NaN rather than a number
+    none = relation_errors(Trajectory(gt.t[:2], gt.poses[:2]), rel[5:])
+    assert none["relations_used"] == 0 and math.isnan(none["relations_trans_median_m"])
 
 
 def test_slip_errors_against_the_true_effective_k():
