@@ -306,7 +306,7 @@ def replay(
     (Long for its option list: typer reads the options from this signature.)"""
     from control.base import CONTROLLERS
     from experiments.config import configure
-    from experiments.run import check_gyro, replay_log
+    from experiments.run import check_gyro, replay_log, source_metadata
     from mapping.grid import GridConfig, MapModel
     from mapping.mapper import MapperConfig
     from slam.base import LOCALIZERS
@@ -334,7 +334,7 @@ def replay(
 
     # the settings the source proposes (e.g. a dataset's noise levels), then --set
     built = configure(
-        LOCALIZERS, localizer, trial.metadata, {**mitigated.localizer_settings, **overrides}
+        LOCALIZERS, localizer, source_metadata(trial), {**mitigated.localizer_settings, **overrides}
     )
     check_gyro(built.config, trial, str(log))
     if built.proposed:

@@ -18,7 +18,14 @@ import numpy as np
 from experiments.calibration_override import CalibrationOverride
 from experiments.config import configure
 from experiments.mitigations import check_calibration, check_source, resolve
-from experiments.run import MAP_BAND_M, ReplayResult, check_gyro, message_types, replay_log
+from experiments.run import (
+    MAP_BAND_M,
+    ReplayResult,
+    check_gyro,
+    message_types,
+    replay_log,
+    source_metadata,
+)
 from hardware.datasets import Dataset
 from hardware.log import TrialLog, read_log
 from slam.base import LOCALIZERS
@@ -155,7 +162,7 @@ def compare(
             mitigated = resolve(mitigations, loc)
             check_source(mitigated, message_types(trial), name)
             settings = {**mitigated.localizer_settings, **user}
-            built = configure(LOCALIZERS, loc, trial.metadata, settings)  # bad settings fail first
+            built = configure(LOCALIZERS, loc, source_metadata(trial), settings)  # fail first
             check_gyro(built.config, trial, name)
             for seed in range(seeds) if is_stochastic(loc) else [None]:
                 over = user if seed is None else {**user, "seed": seed}

@@ -30,9 +30,17 @@ from hardware.calibration import WalkerCalibration
 from hardware.datasets import Dataset
 from hardware.errors import ConfigError, UnknownNameError
 from hardware.log import TrialLog, read_log
-from hardware.messages import MESSAGE_TYPES, GyroRate
+from hardware.messages import (
+    MESSAGE_TYPES,
+    GyroRate,
+    LaserScan,
+    RangeBearing,
+    RangeBearings,
+    TagDetections,
+)
 from hardware.sim.simulator import SimConfig
 from hardware.sim.world import World
+from hardware.source import PROPOSED_SETTINGS
 from mapping.export import save_map_server
 from mapping.mapper import MapperConfig
 from slam import landmarks
@@ -221,6 +229,24 @@ def message_types(trial: TrialLog | Dataset) -> set[type]:
     return {t for t in MESSAGE_TYPES if counts.get(t.__name__, 0) > 0}
 
 
+# what a source with laser scans and no landmark messages proposes (source_metadata)
+SCAN_MODES = {"scan_matching": True, "use_scans": True}
+
+
+def source_metadata(trial: TrialLog | Dataset) -> dict[str, Any]:
+    """A source's metadata, its proposed localizer settings completed by one rule: a
+    source with laser scans and no landmark messages (tags, range-bearing) proposes the
+    localizers' scan-based modes (gtsam's scan matching, the particle filter's scan
+    likelihood), without which a landmark localizer runs as dead reckoning (Intel: 7.4 m
+    relations error). The source's own proposals come after, and the user's --set after
+    them."""
+    types = message_types(trial)
+    if LaserScan not in types or types & {TagDetections, RangeBearing, RangeBearings}:
+        return trial.metadata
+    proposed = {**SCAN_MODES, **(trial.metadata.get(PROPOSED_SETTINGS) or {})}
+    return {**trial.metadata, PROPOSED_SETTINGS: proposed}
+
+
 def check_gyro(config: Any, trial: TrialLog | Dataset, name: str) -> None:
     """ConfigError naming the source when a localizer's config asks for the gyro
     (noise.gyro.enabled) and the source has no gyro messages: the user asked for the
@@ -253,7 +279,7 @@ def _build(
     log_path = str(trial.path) if isinstance(trial, TrialLog) else f"{trial.name}"
     check_source(mitigated, message_types(trial), log_path)
     if localizer_config is None:
-        built = configure(LOCALIZERS, localizer, trial.metadata, overrides or {})
+        built = configure(LOCALIZERS, localizer, source_metadata(trial), overrides or {})
     else:
         built = Configured(localizer_config)
     check_gyro(built.config, trial, log_path)

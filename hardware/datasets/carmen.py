@@ -778,17 +778,14 @@ def carmen_localizer_settings(n_beams: int) -> dict[str, Any]:
     wheel odometry, carried as velocities over repaired timestamps that cannot give a
     rate, so its errors grow with distance and turn, not time
     (slam.motion.MotionNoise.velocity_model "distance"); scans are scored with all their
-    beams up to the laser's usable range. A laser log has scans and no landmark IDs, so
-    the localizers' scan-based modes are on (gtsam's scan matching, the particle
-    filter's scan likelihood); without them a landmark localizer would run as dead
-    reckoning (Intel: 7.4 m relations error)."""
+    beams up to the laser's usable range. (A laser log has scans and no landmark IDs:
+    replay and compare propose the localizers' scan-based modes for any such source,
+    experiments.run.source_metadata.)"""
     return {
         "noise.velocity_model": "distance",
         "max_range_m": USABLE_RANGE_M,
         "max_beams": int(n_beams),
         "scan.max_range_m": USABLE_RANGE_M,
-        "scan_matching": True,
-        "use_scans": True,
     }
 
 

@@ -154,3 +154,33 @@ def test_settings_a_dataset_proposes_come_before_set_and_dataset_options_reach_i
     assert config["localizer_config"]["bearing_sigma_rad"] == BEARING_SIGMA_RAD  # the default
     res = CliRunner().invoke(app, [*args, "--dataset-option", "calibration"])
     assert res.exit_code == 2 and "NAME=VALUE" in res.output
+
+
+def test_a_source_with_scans_and_no_landmarks_proposes_the_scan_modes(tmp_path):
+    """An MCAP log of odometry and laser scans (no tags, no range-bearing): replay and
+    compare configure gtsam with scan matching and the particle filter with its scans;
+    one with tags as well keeps the defaults."""
+    from experiments.config import configure
+    from experiments.run import source_metadata
+    from hardware.calibration import WalkerCalibration
+    from hardware.log import LogWriter, read_log
+    from hardware.messages import LaserScan, TagDetections, VelocityOdometry
+    from slam.base import LOCALIZERS
+
+    def write(path, with_tags):
+        with LogWriter(path, WalkerCalibration()) as w:
+            for k in range(5):
+                w.write(VelocityOdometry(0.1 * k, 0.2, 0.0))
+                w.write(LaserScan(0.1 * k + 0.05, -1.0, 0.01, np.full(200, 2.0, np.float32), 20.0))
+                if with_tags:
+                    w.write(TagDetections(0.1 * k + 0.06))
+        return read_log(path)
+
+    laser = source_metadata(write(tmp_path / "laser.mcap", with_tags=False))
+    tagged = source_metadata(write(tmp_path / "tagged.mcap", with_tags=True))
+    assert configure(LOCALIZERS, "gtsam", laser).config.scan_matching
+    assert configure(LOCALIZERS, "particle-filter", laser).config.use_scans
+    assert not configure(LOCALIZERS, "gtsam", tagged).config.scan_matching
+    assert not configure(LOCALIZERS, "particle-filter", tagged).config.use_scans
+    # a --set still wins over the proposal
+    assert not configure(LOCALIZERS, "gtsam", laser, {"scan_matching": False}).config.scan_matching
