@@ -28,9 +28,13 @@ the laser's mount `laser_offset` on the walker) and depth frames (`DepthFrame`: 
 obstacle band flattened to the floor, `mapping.depth_points`) become 2-D point sets in
 the walker frame (`slam.scan_matching`). A scan is kept when the walker has moved
 `scan.keyframe_distance_m` or turned `scan.keyframe_angle_rad` (odometry) since the
-last kept scan; a keyframe then starts at the scan's own time, so each kept scan sits
-exactly on its keyframe (one scan per keyframe, no odometry offset between them).
-Each kept scan is matched
+last kept scan, or when the odometry since then has a gap (a motion it did not measure:
+`slam.motion.Increment.unknown`); a keyframe then starts at the scan's own time, so each
+kept scan sits exactly on its keyframe (one scan per keyframe, no odometry offset between
+them). A gap's covariance (`noise.unknown_sigma`: a full turn) goes unscaled into the
+odometry factor over it, and the next sequential match searches
+`scan.gate.unknown_window` (1 m, a full turn; wider windows go through the two-level
+search of `slam.scan_matching.correlative_search`). Each kept scan is matched
 
 - sequentially against the previous `scan.submap_size` kept scans, placed in the frame
   of the previous one by the current estimate (a local submap), starting from the
