@@ -186,12 +186,16 @@ def hill_climb(
     trial = np.empty(3)
     best_pose = np.empty(3)
     halvings = 0
+    back = -1  # the move that would undo the last one: its pose scored below this one's
     while halvings <= refinements:
         c, s = math.cos(pose[2]), math.sin(pose[2])
         improved = False
         best_score = best
         best_matched = matched
+        taken = -1
         for move in range(6):
+            if move == back:
+                continue
             trial[:] = pose
             if move == 0:
                 trial[0] += c * step_xy
@@ -221,10 +225,13 @@ def hill_climb(
             if score > best_score:
                 best_score, best_matched, improved = score, m, True
                 best_pose[:] = trial
+                taken = move
         if improved:
             pose[:] = best_pose
             best, matched = best_score, best_matched
+            back = taken ^ 1  # forward <-> back, left <-> right, turn left <-> right
         else:
+            back = -1
             step_xy *= 0.5
             step_theta *= 0.5
             halvings += 1
