@@ -24,15 +24,13 @@ from typing import Any
 
 from hardware.errors import ConfigError
 from hardware.messages import (
+    LANDMARK_MESSAGES,
     BrakeCommand,
     CompassHeading,
     DepthFrame,
     GyroRate,
     LaserScan,
     PositionFix,
-    RangeBearing,
-    RangeBearings,
-    TagDetections,
 )
 from hardware.registry import Registry, Spec
 from mapping.hygiene import HygieneConfig
@@ -248,7 +246,7 @@ SLIP_ESTIMATION = Mitigation(
         }
         for name in ("ekf-slam", "gtsam", "fastslam")
     },
-    needs=((BrakeCommand,), (TagDetections, RangeBearing, RangeBearings)),
+    needs=((BrakeCommand,), LANDMARK_MESSAGES),
     notes="noise.wheel_m 1e-4: the encoders' own noise once slip is modelled (a slipping "
     "trial proposes more, to cover slip); brake_delay_s: the loop's latency",
 )

@@ -30,14 +30,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.datasets import Dataset
 from hardware.errors import ConfigError, UnknownNameError
 from hardware.log import TrialLog, read_log
-from hardware.messages import (
-    MESSAGE_TYPES,
-    GyroRate,
-    LaserScan,
-    RangeBearing,
-    RangeBearings,
-    TagDetections,
-)
+from hardware.messages import LANDMARK_MESSAGES, MESSAGE_TYPES, GyroRate, LaserScan
 from hardware.sim.simulator import SimConfig
 from hardware.sim.world import World
 from hardware.source import PROPOSED_SETTINGS
@@ -241,7 +234,7 @@ def source_metadata(trial: TrialLog | Dataset) -> dict[str, Any]:
     relations error). The source's own proposals come after, and the user's --set after
     them."""
     types = message_types(trial)
-    if LaserScan not in types or types & {TagDetections, RangeBearing, RangeBearings}:
+    if LaserScan not in types or types & set(LANDMARK_MESSAGES):
         return trial.metadata
     proposed = {**SCAN_MODES, **(trial.metadata.get(PROPOSED_SETTINGS) or {})}
     return {**trial.metadata, PROPOSED_SETTINGS: proposed}

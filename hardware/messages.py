@@ -291,6 +291,10 @@ MESSAGE_TYPES: tuple[type, ...] = (
     PositionFix,
 )
 
+# the messages that carry landmark sightings (localizers read them through
+# slam.measurement.landmark_observation)
+LANDMARK_MESSAGES: tuple[type, ...] = (TagDetections, RangeBearing, RangeBearings)
+
 
 @dataclass(order=True, slots=True)
 class _Head:

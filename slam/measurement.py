@@ -21,7 +21,13 @@ import numpy as np
 from hardware.calibration import Mount, WalkerCalibration
 from hardware.choices import Choice
 from hardware.geometry import wrap_angle
-from hardware.messages import Message, RangeBearing, RangeBearings, TagDetections
+from hardware.messages import (
+    LANDMARK_MESSAGES,
+    Message,
+    RangeBearing,
+    RangeBearings,
+    TagDetections,
+)
 
 # Default landmark noise of the localizers: range σ = RANGE_SIGMA_M + RANGE_SIGMA_FRAC·r,
 # bearing σ = BEARING_SIGMA_RAD. They describe an AprilTag camera (the walker's tag
@@ -225,7 +231,7 @@ class Sightings:
             self.taken = True
             return ready
         obs = landmark_observation(msg, self._calibration)
-        self.taken = obs is not None or isinstance(msg, TagDetections | RangeBearings)
+        self.taken = obs is not None or isinstance(msg, LANDMARK_MESSAGES)
         ready = self.take() if self._items and (not self.taken or msg.t != self._t) else None
         if obs is not None:
             self._items.append(obs)  # kept whole while it is alone
