@@ -294,14 +294,17 @@ class FirmwareSim:
         return slot
 
     def _request(self, line: str) -> list[str]:
-        """Send a command, wait for its reply; the reply's fields after OK."""
-        if self._async_error:
-            err, self._async_error = self._async_error, None
-            raise FirmwareSimError(f"board_sim refused an earlier command: {err}")
+        """Send a command, wait for its reply; the reply's fields after OK.
+
+        A refusal of an earlier command that did not wait is raised here, after the
+        reply: board_sim answers in order, so by then it has always been read."""
         slot = self._send(line, wait=True)
         assert slot is not None
         if not slot.done.wait(self.timeout_s):
             raise FirmwareSimError(f"board_sim did not answer {line!r} in {self.timeout_s} s")
+        if self._async_error:
+            err, self._async_error = self._async_error, None
+            raise FirmwareSimError(f"board_sim refused an earlier command: {err}")
         if not slot.text:
             raise FirmwareSimError(f"board_sim is not running: {self._why_dead()}")
         if slot.text.startswith("ERR"):
@@ -411,10 +414,17 @@ class FirmwareSim:
         )
 
     def brake_outputs(self) -> tuple[float, int, int]:
-        """(simulated time in s, left duty, right duty) applied now (0 while a compare
-        output is disconnected)."""
+        """(simulated time in s since when, left duty, right duty) applied now (0 while a
+        compare output is disconnected): the time is that of the change to these duties,
+        not of this call, however late the host asks."""
         s = self.brake_state()
-        return s.t_ns * 1e-9, s.left, s.right
+        changes = self.events(kind="brake")  # all read by now: the harness answers in order
+        t_ns = s.t_ns
+        if changes:
+            a, b, com_a, com_b = (int(v) for v in changes[-1].args[:4])
+            if ((a if com_a else 0), (b if com_b else 0)) == (s.left, s.right):
+                t_ns = changes[-1].t_ns
+        return t_ns * 1e-9, s.left, s.right
 
     def uart_config(self) -> tuple[int, bool, float, int]:
         """The firmware's UART0 setting: (UBRR0, U2X0, baud, simavr cycles per byte)."""
