@@ -29,6 +29,7 @@ class ParticlePaths:
         self.every_s = float(every_s)
         self._events: list[tuple[float, np.ndarray] | np.ndarray] = []  # snapshot | parents
         self._last_t = -math.inf
+        self._last_snapshot = -1  # its index in _events
         self.snapshots = 0
 
     def snapshot(self, t: float, poses: np.ndarray) -> None:
@@ -36,11 +37,11 @@ class ParticlePaths:
         the time of the last one, they replace it (an observation at the time of an
         odometry message corrects the poses there)."""
         if t == self._last_t:
-            last = max(i for i, e in enumerate(self._events) if isinstance(e, tuple))
-            del self._events[last]  # resamplings after it stay, before the new one
+            del self._events[self._last_snapshot]  # resamplings after it stay, before the new one
             self.snapshots -= 1
         elif t - self._last_t < self.every_s or t < self._last_t:
             return
+        self._last_snapshot = len(self._events)
         self._events.append((float(t), np.asarray(poses, dtype=np.float32).copy()))
         self._last_t = float(t)
         self.snapshots += 1
