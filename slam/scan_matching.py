@@ -96,7 +96,10 @@ class ScanMatchConfig:
     within this distance; huber_m: residuals beyond it are down-weighted.
     inlier_m: an inlier's point-to-line (or point-to-point) distance at the solution.
     icp_iterations: at most this many Gauss-Newton steps; icp_tolerance: converged when
-    a step moves less than this (m, rad).
+    a step moves less than this (m, rad); a match that has not converged is rejected.
+    100: with re-association after every step ICP creeps along walls by a few mm per
+    step for dozens of steps (30 left 39 of edmonton's 339 sequential matches
+    unconverged, and rejected; with 100 none; BENCHMARKS.md).
     grid_m, field_sigma_m: the correlative search's likelihood field; free_penalty: the
     score of a query point in seen-free space (farther than free_margin_m from every
     reference point);
@@ -116,7 +119,7 @@ class ScanMatchConfig:
     max_correspondence_m: float = 0.3
     huber_m: float = 0.05
     inlier_m: float = 0.05
-    icp_iterations: int = 30
+    icp_iterations: int = 100
     icp_tolerance: tuple[float, float] = (5e-4, 5e-5)
     grid_m: float = 0.05
     field_sigma_m: float = 0.1
