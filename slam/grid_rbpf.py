@@ -66,9 +66,10 @@ class GridMatch:
     finer than the fit lattice that then places the proposal; GMapping's 5 gave the
     same Intel relations error, 0.0674 against 0.0675 m over seeds 0-2, at 0.8× the
     speed: BENCHMARKS.md); turn_starts_sigma: when this many of the odometry's heading
-    σ since the last frame reach two step_rad (a sharp turn between scans), the match also starts from the odometry pose turned by ± that much and keeps
-    the best of the three climbs (on the Intel log a 10° odometry error in one turn is
-    beyond the climb's reach: 2 of 3 seeds broke there without it); 0 disables;
+    σ since the last frame reach two step_rad (a sharp turn between scans), the match
+    also starts from the odometry pose turned by ± that much and keeps the best of the
+    three climbs (on the Intel log a 10° odometry error in one turn is beyond the
+    climb's reach: 2 of 3 seeds broke there without it); 0 disables;
     shared_turn_starts: the most probable particle tries both turned starts and the
     others only the one it chose (none when its own start won): the odometry's heading
     error is the same for every particle, and two extra climbs per particle were most
