@@ -1,10 +1,15 @@
-"""EKF-SLAM with known data association: one Gaussian over the pose and every landmark.
+"""EKF-SLAM: one Gaussian over the pose and every landmark.
 
 State [x, y, θ, u_1, v_1, …]; a landmark joins the state at its first observation
 (inverse measurement model, with its covariance and cross-covariances); odometry
 increments predict; range-bearing observations (tags seen by the camera, or range-bearing
 datasets) update, one landmark at a time, after a Mahalanobis gate rejects outliers.
-Observations without an ID (< 0) are not used (this filter needs known association).
+Observations without an ID (< 0: trees in a laser scan, corners) are associated with the
+map's landmarks by joint compatibility (JCBB, or nearest neighbour: slam.association,
+`association.method`) over the pose and the landmarks involved, then update like the
+others; the ones that match no landmark become provisional landmarks, which join the
+state once seen again (`association.confirm_sightings`) and are dropped otherwise
+(`association_enabled=false`: observations without an ID are counted and not used).
 Absolute observations (`absolute`, slam.absolute: a compass heading, a position fix),
 when switched on, are Kalman updates of the pose block (heading innovation wrapped),
 behind a Mahalanobis gate at the chi-squared quantile `absolute.gate_prob`.
@@ -22,6 +27,7 @@ import numpy as np
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
+from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
 from slam import ekf_kernels as kernels
@@ -30,6 +36,15 @@ from slam.absolute import (
     AbsoluteObservation,
     absolute_observation,
     fused_count,
+)
+from slam.association import (
+    FIRST_ASSOCIATED_ID,
+    AssociationConfig,
+    AssociationMethod,
+    Provisional,
+    jcbb,
+    mahalanobis2,
+    nearest_neighbour,
 )
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.measurement import (
@@ -40,6 +55,8 @@ from slam.measurement import (
     Sightings,
     landmark_from_range_bearing,
     landmark_from_range_bearing_jacobians,
+    range_bearing,
+    range_bearing_jacobians,
 )
 from slam.motion import Cov3, Increment, MotionNoise, OdometryModel, propagate, split_increment
 from slam.rts import arc_steps, rts_smooth
@@ -63,6 +80,8 @@ class EkfSlamConfig(LocalizerConfig):
     range_sigma_m + range_sigma_frac·r: range noise; bearing_sigma_rad: bearing noise
     (defaults: an AprilTag camera, slam.measurement.RANGE_SIGMA_M and the others).
     gate_chi2: Mahalanobis gate for an update (13.8 = 99.9 % for 2 DOF); inf disables.
+    association: data association for observations without IDs (slam.association.
+    AssociationConfig) and `association_enabled` (False: they are not used).
     smoother: "rts": `trajectory()` is the filtered pose track RTS-smoothed over the
     odometry (slam.rts, pose-only), so a loop closure's correction also moves the path
     that led to it and the pipeline rebuilds the map along it (`revises_past`);
@@ -82,6 +101,8 @@ class EkfSlamConfig(LocalizerConfig):
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     gate_chi2: float = 13.8
+    association_enabled: bool = True
+    association: AssociationConfig = field(default_factory=AssociationConfig)
     smoother: EkfSmoother = EkfSmoother.RTS
     absolute: AbsoluteConfig = field(default_factory=AbsoluteConfig)
     slip: SlipEstimation = field(default_factory=SlipEstimation)
@@ -115,6 +136,10 @@ class EkfSlam(Localizer):
         self._stale = True  # the full state lags the pose predicted since the last sync
         self.index: dict[int, int] = {}  # landmark id → state offset
         self.counts = {"updates": 0, "new_landmarks": 0, "gated": 0, "without_id": 0}
+        if config.association_enabled:
+            self.counts.update(associated=0, ambiguous=0, jcbb_changed=0, jcbb_budget=0)
+        self._provisional = Provisional(config.association)
+        self._next_id = FIRST_ASSOCIATED_ID
         if config.absolute.enabled:
             self.counts.update(compass_updates=0, position_updates=0, absolute_gated=0)
         self._gates = {dof: config.absolute.gate(dof) for dof in (1, 2)}
@@ -243,14 +268,18 @@ class EkfSlam(Localizer):
         """Update with one message's observations; between: made after the last
         recorded step (align_observations), which then keeps its pose and covariance."""
         self._sync()
+        unknown = []
         for lid, z in zip(obs.ids, obs.z, strict=True):
             lid = int(lid)
             if lid < 0:
                 self.counts["without_id"] += 1
+                unknown.append(z)
             elif lid in self.index:
                 self._update(self.index[lid], z, amend=not between)
             else:
                 self._add_landmark(lid, z)
+        if unknown and self.config.association_enabled:
+            self._associate(obs.t, np.array(unknown, dtype=float), between)
         self._unsync()
         self._after_observation(between)
 
@@ -274,6 +303,66 @@ class EkfSlam(Localizer):
             self.counts["absolute_gated"] += 1
         self._unsync()
         self._after_observation()
+
+    def _associate(self, t: float, z: np.ndarray, between: bool) -> None:
+        """Observations (n, 2) without IDs (slam.association): paired with the map's
+        landmarks (JCBB or nearest neighbour) and used as theirs; the others new
+        (provisional) or ambiguous (dropped)."""
+        c = self.config.association
+        var = np.array([self._variances(float(r)) for r in z[:, 0]])  # (n, 2)
+        offsets = np.fromiter(self.index.values(), dtype=int, count=len(self.index))
+        assignment = np.full(len(z), -1, dtype=int)
+        d2_min = np.full(len(z), np.inf)
+        if len(offsets):
+            pose, p = self._x[:3], self._P
+            lm = np.stack([self._x[offsets], self._x[offsets + 1]], axis=-1)
+            g_s, g_l = range_bearing_jacobians(pose, lm)  # (m, 2, 3), (m, 2, 2)
+            rows = offsets[:, None] + np.arange(2)  # (m, 2)
+            p_sl = np.moveaxis(p[:3][:, rows], 1, 0)  # (m, 3, 2)
+            cross = g_s @ p_sl @ np.swapaxes(g_l, 1, 2)
+            s_base = (
+                g_s @ p[:3, :3] @ np.swapaxes(g_s, 1, 2)
+                + cross
+                + np.swapaxes(cross, 1, 2)
+                + g_l @ p[rows[:, :, None], rows[:, None, :]] @ np.swapaxes(g_l, 1, 2)
+            )
+            nu = z[:, None, :] - range_bearing(pose, lm)[None]
+            nu[..., 1] = wrap_angle(nu[..., 1])
+            s_all = s_base[None] + var[:, None, :, None] * np.eye(2)
+            d2 = mahalanobis2(nu, s_all)
+            d2_min = d2.min(axis=1)
+            nn = nearest_neighbour(d2, c.gate())
+            assignment = nn
+            if c.method == AssociationMethod.JCBB:
+
+                def joint(pairs):
+                    cols = [0, 1, 2] + [int(v) for _, j in pairs for v in rows[j]]
+                    h = np.zeros((2 * len(pairs), len(cols)))
+                    for q, (_, j) in enumerate(pairs):
+                        h[2 * q : 2 * q + 2, :3] = g_s[j]
+                        h[2 * q : 2 * q + 2, 3 + 2 * q : 5 + 2 * q] = g_l[j]
+                    noise = np.diag(np.concatenate([var[i] for i, _ in pairs]))
+                    return h @ p[np.ix_(cols, cols)] @ h.T + noise
+
+                res = jcbb(d2, nu, joint, c)
+                assignment = res.assignment
+                self.counts["jcbb_changed"] += int(np.count_nonzero(assignment != nn))
+                self.counts["jcbb_budget"] += int(res.exhausted)
+        for i in np.flatnonzero(assignment >= 0):
+            self.counts["associated"] += 1
+            self._update(int(offsets[assignment[i]]), z[i], amend=not between)
+        rest = assignment < 0
+        new = rest & (d2_min > c.new_threshold())
+        self.counts["ambiguous"] += int(np.count_nonzero(rest & ~new))
+        if not new.any():
+            return
+        pose, zn = self._x[:3], z[new]
+        j_s, j_z = landmark_from_range_bearing_jacobians(pose, zn)
+        noise = var[new][:, :, None] * np.eye(2)
+        covs = j_s @ self._P[:3, :3] @ np.swapaxes(j_s, 1, 2) + j_z @ noise @ np.swapaxes(j_z, 1, 2)
+        for k in self._provisional.observe(t, landmark_from_range_bearing(pose, zn), covs):
+            self._add_landmark(self._next_id, zn[k])
+            self._next_id += 1
 
     def _add_landmark(self, lid: int, z: np.ndarray) -> None:
         pose = self._x[:3]
@@ -388,10 +477,13 @@ class EkfSlam(Localizer):
     def diagnostics(self) -> dict:
         self._place_held()
         notes: dict = {**self.counts, **self.odometry.diagnostics()}
+        if self.config.association_enabled:
+            notes["provisional_pending"] = len(self._provisional)
+            notes["provisional_dropped"] = self._provisional.dropped
         c = self.counts
         absolute = fused_count(c)
         if c["updates"] == 0 and c["new_landmarks"] == 0 and absolute == 0:
-            notes["note"] = "no landmark observations with an ID: odometry only"
+            notes["note"] = "no landmark observations in the map: odometry only"
         if (slip := self.slip_estimate()) is not None:
             notes.update(slip_diagnostics(*slip))
         return notes

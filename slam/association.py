@@ -1,0 +1,254 @@
+"""Data association for landmark observations without IDs (ID −1: trees in a laser scan,
+corners extracted from one, a misread tag), shared by the landmark localizers.
+
+A localizer that sees n observations at one time and has m landmarks in its map gives
+each observation i and landmark j the innovation ν_ij = z_i − h(x, l_j) (bearing wrapped)
+and its covariance S_ij; from those:
+
+- **individual compatibility**: (i, j) is a candidate when ν_ijᵀ S_ij⁻¹ ν_ij is within
+  the χ²(2) quantile `gate_prob`;
+- **nearest neighbour** (`method="nn"`): the candidate pairs taken greedily in order of
+  their Mahalanobis distance, each observation and each landmark at most once;
+- **joint compatibility branch and bound** (`method="jcbb"`, Neira & Tardós 2001): the
+  hypothesis (a landmark or none for every observation) with the most pairings whose
+  stacked innovation passes the χ²(2k) quantile `gate_prob` under its *joint* covariance
+  (a localizer's `joint_covariance(pairs)`: in EKF-SLAM H P Hᵀ + R over the pose and the
+  landmarks involved, so the common error of the pose is counted once), the smallest
+  joint distance among equals. Pairs that each fit alone but not together — clutter next
+  to a landmark, a row of similar landmarks seen through a heading error — are told
+  apart. The search visits at most `max_nodes` hypotheses (then the best so far is kept,
+  counted by the caller).
+
+An observation left without a landmark is either new — its Mahalanobis distance to every
+landmark beyond the χ²(2) quantile `new_prob` — or ambiguous (dropped, counted). A new
+one is **provisional** (`Provisional`): a world point with its covariance, not yet in
+the map; an observation of the next times that falls within the gate of a provisional
+point is another sighting of it; after `confirm_sightings` sightings it becomes a map
+landmark, and one not confirmed within `provisional_max_age_s` is dropped (clutter, a
+false detection, a passing person). The IDs of landmarks found this way count up from
+FIRST_ASSOCIATED_ID, so that they never collide with known ones.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import chi2
+
+from hardware.choices import Choice, coerce
+
+FIRST_ASSOCIATED_ID = 1_000_000
+
+Pair = tuple[int, int]  # (observation index, landmark index)
+
+
+class AssociationMethod(Choice):
+    """How observations without IDs are paired with landmarks (module docstring)."""
+
+    NN = "nn"
+    JCBB = "jcbb"
+
+
+@dataclass(frozen=True)
+class AssociationConfig:
+    """Data association for observations without IDs (module docstring): method "jcbb"
+    or "nn"; gate_prob: the individual and joint χ² quantile; new_prob: an unpaired
+    observation farther than this χ²(2) quantile from every landmark is new (else
+    ambiguous, dropped); confirm_sightings / provisional_max_age_s: when a provisional
+    landmark joins the map or is dropped; max_nodes: JCBB's search budget per time."""
+
+    method: AssociationMethod = AssociationMethod.JCBB
+    gate_prob: float = 0.99
+    new_prob: float = 0.9999
+    confirm_sightings: int = 2
+    provisional_max_age_s: float = 5.0
+    max_nodes: int = 20_000
+
+    def __post_init__(self) -> None:
+        coerce(self, method=AssociationMethod)
+        if not (0.0 < self.gate_prob < 1.0 and self.gate_prob <= self.new_prob < 1.0):
+            raise ValueError(
+                f"need 0 < gate_prob <= new_prob < 1, got {self.gate_prob}, {self.new_prob}"
+            )
+        if self.confirm_sightings < 1 or self.provisional_max_age_s < 0 or self.max_nodes < 1:
+            raise ValueError(
+                "confirm_sightings and max_nodes must be >= 1, provisional_max_age_s >= 0"
+            )
+
+    def gate(self, dof: int = 2) -> float:
+        """The squared-Mahalanobis threshold for `dof` stacked dimensions."""
+        return _quantile(self.gate_prob, dof)
+
+    def new_threshold(self) -> float:
+        return _quantile(self.new_prob, 2)
+
+
+_QUANTILES: dict[tuple[float, int], float] = {}
+
+
+def _quantile(p: float, dof: int) -> float:
+    key = (p, dof)
+    if key not in _QUANTILES:
+        _QUANTILES[key] = float(chi2.ppf(p, dof))
+    return _QUANTILES[key]
+
+
+def mahalanobis2(nu: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """νᵀ S⁻¹ ν for stacks of 2-vectors (..., 2) and 2×2 matrices (..., 2, 2)."""
+    a, b = s[..., 0, 0], s[..., 0, 1]
+    c, d = s[..., 1, 0], s[..., 1, 1]
+    det = a * d - b * c
+    x, y = nu[..., 0], nu[..., 1]
+    return (d * x * x - (b + c) * x * y + a * y * y) / det
+
+
+def nearest_neighbour(d2: np.ndarray, gate: float) -> np.ndarray:
+    """Greedy nearest neighbour on the (n, m) squared Mahalanobis distances: the pairs
+    within `gate` in increasing distance, each observation and landmark used once.
+    Returns the landmark of each observation (−1: none)."""
+    n = d2.shape[0]
+    out = np.full(n, -1, dtype=int)
+    if d2.size == 0:
+        return out
+    rows, cols = np.nonzero(d2 <= gate)
+    used: set[int] = set()
+    for k in np.argsort(d2[rows, cols], kind="stable"):
+        i, j = int(rows[k]), int(cols[k])
+        if out[i] < 0 and j not in used:
+            out[i] = j
+            used.add(j)
+    return out
+
+
+@dataclass
+class JcbbResult:
+    """The hypothesis JCBB found: the landmark of each observation (−1: none), its joint
+    squared Mahalanobis distance, the hypotheses visited and whether the budget ran out."""
+
+    assignment: np.ndarray
+    d2: float
+    nodes: int
+    exhausted: bool
+
+
+def jcbb(
+    d2: np.ndarray,
+    nu: np.ndarray,
+    joint_covariance: Callable[[Sequence[Pair]], np.ndarray],
+    config: AssociationConfig,
+) -> JcbbResult:
+    """Joint compatibility branch and bound (module docstring). d2: (n, m) individual
+    squared Mahalanobis distances; nu: (n, m, 2) innovations; joint_covariance(pairs):
+    the (2k, 2k) covariance of the stacked innovations of the pairs, in their order."""
+    n = d2.shape[0]
+    gate = config.gate()
+    candidates = [
+        [int(j) for j in np.argsort(d2[i], kind="stable") if d2[i, j] <= gate] for i in range(n)
+    ]
+    best = JcbbResult(np.full(n, -1, dtype=int), 0.0, 0, False)
+    best_pairs = 0
+    current = np.full(n, -1, dtype=int)
+    pairs: list[Pair] = []
+    nodes = 0
+
+    def joint_d2(trial: list[Pair]) -> float:
+        v = np.concatenate([nu[i, j] for i, j in trial])
+        s = joint_covariance(trial)
+        try:
+            return float(v @ np.linalg.solve(s, v))
+        except np.linalg.LinAlgError:
+            return math.inf
+
+    def search(i: int, d2_now: float) -> None:
+        nonlocal best, best_pairs, nodes
+        if nodes >= config.max_nodes:
+            best.exhausted = True
+            return
+        nodes += 1
+        if i == n:
+            k = len(pairs)
+            if k > best_pairs or (k == best_pairs and d2_now < best.d2):
+                best = JcbbResult(current.copy(), d2_now, nodes, best.exhausted)
+                best_pairs = k
+            return
+        used = {j for _, j in pairs}
+        for j in candidates[i]:
+            if j in used:
+                continue
+            pairs.append((i, j))
+            d = joint_d2(pairs)
+            if d <= config.gate(2 * len(pairs)):
+                current[i] = j
+                search(i + 1, d)
+                current[i] = -1
+            pairs.pop()
+        # the star branch (no landmark for i): only while it can still tie the best
+        if len(pairs) + (n - i - 1) >= best_pairs:
+            search(i + 1, d2_now)
+
+    search(0, 0.0)
+    best.nodes = nodes
+    return best
+
+
+@dataclass
+class _Candidate:
+    mean: np.ndarray  # (2,) world
+    cov: np.ndarray  # (2, 2)
+    sightings: int
+    first_t: float
+
+
+class Provisional:
+    """Landmarks seen but not yet in the map (module docstring)."""
+
+    def __init__(self, config: AssociationConfig) -> None:
+        self.config = config
+        self._items: list[_Candidate] = []
+        self.dropped = 0
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def observe(self, t: float, points: np.ndarray, covs: np.ndarray) -> list[int]:
+        """New observations at time t, as world points (k, 2) with covariances (k, 2, 2):
+        each is another sighting of the provisional landmark whose gate it falls in
+        (nearest first, one observation each) or starts one. Returns the indices of the
+        observations that confirmed theirs (removed from here: the caller puts them in
+        its map); unconfirmed ones older than provisional_max_age_s are dropped first."""
+        c = self.config
+        keep = [p for p in self._items if t - p.first_t <= c.provisional_max_age_s]
+        self.dropped += len(self._items) - len(keep)
+        self._items = keep
+        k = len(points)
+        match = np.full(k, -1, dtype=int)
+        if k and self._items:
+            means = np.array([p.mean for p in self._items])
+            pcovs = np.array([p.cov for p in self._items])
+            diff = points[:, None, :] - means[None, :, :]
+            match = nearest_neighbour(mahalanobis2(diff, covs[:, None] + pcovs[None, :]), c.gate())
+        confirmed: list[int] = []
+        done: set[int] = set()
+        new: list[_Candidate] = []
+        for i in range(k):
+            j = int(match[i])
+            if j < 0:
+                if c.confirm_sightings <= 1:
+                    confirmed.append(i)
+                else:
+                    new.append(_Candidate(points[i].copy(), covs[i].copy(), 1, t))
+                continue
+            p = self._items[j]
+            # the product of the two Gaussians: the point seen again
+            info_p, info_i = np.linalg.inv(p.cov), np.linalg.inv(covs[i])
+            p.cov = np.linalg.inv(info_p + info_i)
+            p.mean = p.cov @ (info_p @ p.mean + info_i @ points[i])
+            p.sightings += 1
+            if p.sightings >= c.confirm_sightings:
+                done.add(j)
+                confirmed.append(i)
+        self._items = [p for j, p in enumerate(self._items) if j not in done] + new
+        return confirmed

@@ -1,0 +1,201 @@
+"""Data association without IDs (slam.association): scenes where nearest neighbour pairs
+wrongly and joint compatibility does not, the provisional landmarks' life cycle, and
+EKF-SLAM run on range-bearing sightings whose IDs were removed."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from experiments.metrics import ate
+from hardware.calibration import WalkerCalibration
+from hardware.errors import ConfigError
+from hardware.messages import RangeBearing
+from hardware.sim.landmark_drive import DriveNoise, batched, landmark_drive
+from slam.association import (
+    FIRST_ASSOCIATED_ID,
+    AssociationConfig,
+    Provisional,
+    jcbb,
+    mahalanobis2,
+    nearest_neighbour,
+)
+from slam.base import create
+from slam.ekf_slam import EkfSlamConfig
+from slam.motion import MotionNoise
+from slam.trajectory import Trajectory
+
+# PythonRobotics' landmark scenario (issue 13's benchmark): 0.1 s steps, 1 m/s, 0.1 rad/s
+LANDMARKS = {
+    i: xy
+    for i, xy in enumerate(
+        [(10, -2), (15, 10), (15, 15), (10, 20), (3, 15), (-5, 20), (-5, 5), (-10, 15)]
+    )
+}
+NOISE = DriveNoise()  # 0.5 m/s, 10°/s, 0.3 m, 2°
+
+
+def drive(seed: int):
+    steps, truth = landmark_drive(LANDMARKS, 500, 0.1, 1.0, 0.1, NOISE, seed=seed)
+    return steps, Trajectory(truth[:, 0], truth[:, 1:])
+
+
+def ekf(steps, **fields):
+    """EKF-SLAM told the drive's noise, run over the steps."""
+    noise = MotionNoise(
+        velocity_frac=NOISE.v * math.sqrt(0.1), omega_frac=0.0,
+        omega_floor=NOISE.omega * math.sqrt(0.1),
+    )  # fmt: skip
+    config = EkfSlamConfig(
+        noise=noise, range_sigma_m=NOISE.range_m, range_sigma_frac=0.0,
+        bearing_sigma_rad=NOISE.bearing_rad, **fields,
+    )  # fmt: skip
+    loc = create("ekf-slam", WalkerCalibration(), config)
+    for msgs in steps:
+        for m in msgs:
+            loc.process(m)
+    return loc
+
+
+class HeadingScene:
+    """Landmarks at range 5 m and the given bearings, known exactly; the robot's heading
+    is uncertain (σ_δ) and its bearings precise (σ_b): every sighting's innovation shares
+    the heading error, so individually each sighting fits several landmarks while
+    jointly only one pairing does. Innovation of sighting i against landmark j:
+    ν = z_i − (5, b_j); its covariance diag(σ_r², σ_δ² + σ_b²), and two sightings'
+    innovations share σ_δ² in bearing."""
+
+    def __init__(self, bearings, sigma_heading=0.2, sigma_bearing=0.005, sigma_range=0.05):
+        self.lm = np.asarray(bearings, dtype=float)
+        self.sd, self.sb, self.sr = sigma_heading, sigma_bearing, sigma_range
+
+    def innovations(self, z_bearings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(d2 (n, m), ν (n, m, 2)) of sightings at range 5 m and these bearings."""
+        nu = np.zeros((len(z_bearings), len(self.lm), 2))
+        nu[..., 1] = np.asarray(z_bearings)[:, None] - self.lm[None, :]
+        s = np.diag([self.sr**2, self.sd**2 + self.sb**2])
+        return mahalanobis2(nu, np.broadcast_to(s, (*nu.shape[:2], 2, 2))), nu
+
+    def joint(self, pairs) -> np.ndarray:
+        k = len(pairs)
+        s = np.zeros((2 * k, 2 * k))
+        s[1::2, 1::2] = self.sd**2  # the common heading error
+        s[np.arange(0, 2 * k, 2), np.arange(0, 2 * k, 2)] = self.sr**2
+        s[np.arange(1, 2 * k, 2), np.arange(1, 2 * k, 2)] += self.sb**2
+        return s
+
+
+def test_a_row_of_landmarks_through_a_heading_error_nn_shifts_jcbb_does_not():
+    scene = HeadingScene([0.0, 0.1, 0.2, 0.3])
+    delta = 0.07  # the heading is 0.07 rad more than believed: every bearing reads 0.07 less
+    z = scene.lm - delta
+    d2, nu = scene.innovations(z)
+    config = AssociationConfig()
+    assert np.all(d2 <= config.gate())  # each sighting fits every landmark on its own
+    nn = nearest_neighbour(d2, config.gate())
+    assert nn.tolist() == [3, 0, 1, 2]  # each its neighbour's landmark, the first the last
+    res = jcbb(d2, nu, scene.joint, config)
+    assert res.assignment.tolist() == [0, 1, 2, 3]
+    assert res.d2 == pytest.approx(delta**2 / (scene.sd**2 + scene.sb**2 / 4), rel=0.05)
+    assert not res.exhausted
+
+
+def test_clutter_beside_a_landmark_whose_own_sighting_was_missed():
+    scene = HeadingScene([0.0, 0.3, 0.6])
+    # landmarks 0 and 2 seen (heading error 0.05), landmark 1 missed; a false return
+    # 0.04 rad beside where landmark 1 would be
+    z = np.array([0.0 - 0.05, 0.6 - 0.05, 0.3 - 0.05 + 0.04])
+    d2, nu = scene.innovations(z)
+    config = AssociationConfig()
+    assert nearest_neighbour(d2, config.gate()).tolist() == [0, 2, 1]  # the clutter taken
+    assert jcbb(d2, nu, scene.joint, config).assignment.tolist() == [0, 2, -1]
+
+
+def test_jcbb_without_candidates_and_with_a_budget():
+    scene = HeadingScene([0.0, 0.1, 0.2, 0.3, 0.4, 0.5])
+    d2, nu = scene.innovations(np.array([2.0]))  # far from all of them
+    assert jcbb(d2, nu, scene.joint, AssociationConfig()).assignment.tolist() == [-1]
+    z = scene.lm - 0.05
+    d2, nu = scene.innovations(z)
+    small = jcbb(d2, nu, scene.joint, AssociationConfig(max_nodes=5))
+    assert small.exhausted and small.nodes == 5
+    full = jcbb(d2, nu, scene.joint, AssociationConfig())
+    assert full.assignment.tolist() == list(range(6)) and not full.exhausted
+
+
+def test_bad_association_settings_are_refused():
+    with pytest.raises(ConfigError, match="method"):
+        AssociationConfig(method="hungarian")
+    with pytest.raises(ValueError, match="gate_prob"):
+        AssociationConfig(gate_prob=0.999, new_prob=0.99)
+    with pytest.raises(ValueError, match="confirm_sightings"):
+        AssociationConfig(confirm_sightings=0)
+
+
+def test_provisional_landmarks_are_confirmed_when_seen_again_and_dropped_when_not():
+    prov = Provisional(AssociationConfig(confirm_sightings=3, provisional_max_age_s=1.0))
+    cov = np.broadcast_to(np.eye(2) * 0.01, (2, 2, 2))
+    real, clutter = np.array([5.0, 1.0]), np.array([-3.0, 4.0])
+    assert prov.observe(0.0, np.array([real, clutter]), cov) == []
+    assert len(prov) == 2
+    # seen again near where it was (the clutter not): the second of three sightings
+    assert prov.observe(0.1, np.array([real + 0.05]), cov[:1]) == []
+    assert prov.observe(0.2, np.array([[9.0, 9.0], real - 0.05]), cov) == [1]
+    assert len(prov) == 2 and prov.dropped == 0  # (9, 9) new; the clutter still waiting
+    assert prov.observe(1.15, np.empty((0, 2)), np.empty((0, 2, 2))) == []
+    assert prov.dropped == 1 and len(prov) == 1  # the clutter aged out, (9, 9) has not
+    once = Provisional(AssociationConfig(confirm_sightings=1))
+    assert once.observe(0.0, np.array([real, clutter]), cov) == [0, 1] and len(once) == 0
+
+
+def _without_ids(steps):
+    return [
+        [RangeBearing(m.t, -1, m.range_m, m.bearing_rad) if isinstance(m, RangeBearing) else m
+         for m in s]
+        for s in steps
+    ]  # fmt: skip
+
+
+def _with_clutter(steps, rate: float, seed: int):
+    """Spurious sightings, Poisson(rate) per step, uniform within the sensor's reach."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for s in steps:
+        extra = [
+            RangeBearing(s[0].t, -1, rng.uniform(1.0, 20.0), rng.uniform(-math.pi, math.pi))
+            for _ in range(rng.poisson(rate))
+        ]
+        out.append([*s, *extra])
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_ekf_slam_without_ids_finds_the_landmarks_and_tracks_as_with_them(seed):
+    steps, gt = drive(seed)
+    known = ekf(batched(steps))
+    blind = ekf(batched(_without_ids(steps)))
+    d = blind.diagnostics()
+    assert len(blind.landmarks()) == 8 and min(blind.landmarks()) == FIRST_ASSOCIATED_ID
+    assert d["associated"] > 0.97 * d["without_id"]
+    assert (
+        ate(blind.trajectory(), gt)["ate_rmse_m"] < 1.1 * ate(known.trajectory(), gt)["ate_rmse_m"]
+    )
+    # every landmark found is one of the eight, where it is
+    true = np.array(list(LANDMARKS.values()), dtype=float)
+    for mean, _ in blind.landmarks().values():
+        assert np.min(np.hypot(*(true - mean).T)) < 0.6
+
+
+def test_ekf_slam_keeps_clutter_out_of_its_map():
+    steps, gt = drive(0)
+    noisy = batched(_with_clutter(_without_ids(steps), 1.0, seed=100))
+    config = AssociationConfig(confirm_sightings=4, provisional_max_age_s=2.0)
+    loc = ekf(noisy, association=config)
+    d = loc.diagnostics()
+    assert len(loc.landmarks()) == 8
+    assert d["provisional_dropped"] > 150  # ~1 spurious sighting per step, 500 steps
+    assert ate(loc.trajectory(), gt)["ate_rmse_m"] < 0.15
+    off = ekf(noisy, association_enabled=False)
+    assert len(off.landmarks()) == 0 and off.diagnostics()["without_id"] == d["without_id"]
