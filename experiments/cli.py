@@ -43,6 +43,8 @@ def _print_metrics(metrics: dict, files: dict[str, Path]) -> None:
         "final_position_error_m",
         "landmark_rmse_m",
         "relations_trans_mean_m",
+        "gps_rmse_m",
+        "gps_rmse_unaligned_m",
         "map_precision",
         "phantom_area_m2",
         "braking_impulse_nms",
@@ -50,6 +52,12 @@ def _print_metrics(metrics: dict, files: dict[str, Path]) -> None:
     ):
         if key in metrics:
             table.add_row(key, f"{metrics[key]:.3f}")
+    if "gps_fixes_used" in metrics:
+        table.add_row(
+            "gps fixes",
+            f"{metrics['gps_fixes_used']} used, {metrics['gps_jumps_left_out']} jumps left out, "
+            f"{metrics['gps_dropouts']} dropouts ({metrics['gps_dropout_s']:.0f} s)",
+        )
     if "collisions" in metrics:
         c = metrics["collisions"]
         table.add_row(

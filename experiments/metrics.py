@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -62,6 +63,69 @@ def ate(est: Trajectory, gt: Trajectory) -> dict[str, float]:
         "ate_rmse_unaligned_m": float(np.sqrt(np.mean(np.sum((e[:, :2] - g[:, :2]) ** 2, axis=1)))),
         "final_position_error_m": float(np.hypot(*(e[-1, :2] - g[-1, :2]))),
     }
+
+
+@dataclass(frozen=True)
+class GpsScreen:
+    """A GPS track screened for dropouts and jumps (`screen_gps`): which fixes are kept,
+    and what was found."""
+
+    kept: np.ndarray  # (n,) bool
+    jumps: int  # fixes left out: they imply a speed above max_speed_mps
+    dropouts: int  # gaps between consecutive fixes longer than max_gap_s
+    dropout_s: float  # the time those gaps cover
+
+
+def screen_gps(rows: np.ndarray, max_gap_s: float = 1.0, max_speed_mps: float = 10.0) -> GpsScreen:
+    """GPS fixes (n, 3: t, x, y) in time order: a fix is a *jump* when reaching it from the
+    last kept fix needs more than max_speed_mps (Victoria Park's car drives at most
+    6.6 m/s by its odometry), and is left out; a *dropout* is a gap between consecutive
+    fixes longer than max_gap_s (Victoria Park logs 5 fixes/s). Nothing is interpolated
+    over either: the metrics use the kept fixes only, and report both counts."""
+    rows = np.asarray(rows, dtype=float).reshape(-1, 3)
+    kept = np.zeros(len(rows), dtype=bool)
+    last = None
+    for i, (t, x, y) in enumerate(rows):
+        if last is not None:
+            dt = t - last[0]
+            if math.hypot(x - last[1], y - last[2]) > max_speed_mps * max(dt, 0.0):
+                continue
+        kept[i] = True
+        last = (t, x, y)
+    gaps = np.diff(rows[:, 0]) if len(rows) > 1 else np.empty(0)
+    long = gaps > max_gap_s
+    return GpsScreen(kept, int(len(rows) - kept.sum()), int(long.sum()), float(gaps[long].sum()))
+
+
+def gps_errors(
+    est: Trajectory, rows: np.ndarray, max_gap_s: float = 1.0, max_speed_mps: float = 10.0
+) -> dict[str, float]:
+    """Position errors of the estimate at the GPS fixes it spans (GPS has no heading, and
+    its antenna's place on the vehicle may be unknown: position only), after `screen_gps`:
+    RMSE after SE(2) alignment and unaligned, the aligned error's median, 90th percentile
+    and maximum, and the fixes used, jumps left out and dropouts."""
+    rows = np.asarray(rows, dtype=float).reshape(-1, 3)
+    inside = rows[(rows[:, 0] >= est.t[0]) & (rows[:, 0] <= est.t[-1])]
+    screen = screen_gps(inside, max_gap_s, max_speed_mps)
+    fixes = inside[screen.kept]
+    out = {
+        "gps_fixes_used": len(fixes),
+        "gps_jumps_left_out": screen.jumps,
+        "gps_dropouts": screen.dropouts,
+        "gps_dropout_s": screen.dropout_s,
+    }
+    if len(fixes) < 2:
+        return {**out, "gps_rmse_m": math.nan, "gps_rmse_unaligned_m": math.nan}
+    e = est.interpolate(fixes[:, 0])[:, :2]
+    g = fixes[:, 1:]
+    r, t = align_se2(e, g)
+    d = np.hypot(*(e @ r.T + t - g).T)
+    out["gps_rmse_m"] = float(np.sqrt(np.mean(d * d)))
+    out["gps_rmse_unaligned_m"] = float(np.sqrt(np.mean(np.sum((e - g) ** 2, axis=1))))
+    out["gps_median_m"] = float(np.median(d))
+    out["gps_p90_m"] = float(np.percentile(d, 90))
+    out["gps_max_m"] = float(d.max())
+    return out
 
 
 def heading_errors(est: Trajectory, gt: Trajectory) -> dict[str, float]:

@@ -24,7 +24,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
-from experiments.metrics import associate
+from experiments.metrics import align_se2, associate, gps_errors, screen_gps
 from experiments.pipeline import Pipeline
 from hardware.messages import BrakeCommand, Collision
 from mapping.export import MapRaster, map_raster
@@ -265,6 +265,59 @@ def trajectory_figure(
             )
         )
     title = f"{log_name(log)}: {localizer} path against the true path"
+    return _finish_path_axes(fig, ax, handles, box, title)
+
+
+def gps_figure(
+    est: Trajectory,
+    rows: np.ndarray,
+    landmarks: np.ndarray,
+    *,
+    localizer: str,
+    log: str | Path,
+) -> Figure:
+    """gps.png: the estimated path and its landmark map, aligned (SE(2)) onto the GPS
+    fixes the metric keeps (experiments.metrics.gps_errors), over those fixes and the
+    jumps it left out."""
+    rows = np.asarray(rows, dtype=float).reshape(-1, 3)
+    inside = rows[(rows[:, 0] >= est.t[0]) & (rows[:, 0] <= est.t[-1])]
+    screen = screen_gps(inside)
+    kept = inside[screen.kept]
+    path = est.poses[:, :2]
+    if len(kept) >= 2:
+        r, t = align_se2(est.interpolate(kept[:, 0])[:, :2], kept[:, 1:])
+        path = path @ r.T + t
+        landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 2) @ r.T + t
+    m = gps_errors(est, rows)
+    fig, ax, handles, box = _path_axes([path, inside[:, 1:]], None, [], (1.0, None))
+    ax.plot(*kept[:, 1:].T, ".", ms=1.5, color=TRUTH_COLOUR)
+    handles.append(
+        Line2D([], [], marker=".", ls="none", color=TRUTH_COLOUR, label=f"GPS ({len(kept)} fixes)")
+    )
+    jumps = inside[~screen.kept]
+    if len(jumps):
+        ax.plot(*jumps[:, 1:].T, "x", ms=4, color=COLLISION_COLOUR)
+        handles.append(
+            Line2D(
+                [], [], marker="x", ls="none", color=COLLISION_COLOUR,
+                label=f"GPS jumps left out ({len(jumps)})",
+            )
+        )  # fmt: skip
+    draw_path(ax, path, ESTIMATE_COLOUR)
+    handles.append(line_handle(ESTIMATE_COLOUR, f"estimated path ({localizer}), aligned"))
+    if len(landmarks):
+        ax.plot(*landmarks.T, "o", ms=2, mfc="none", color="black", mew=0.6)
+        handles.append(
+            Line2D(
+                [], [], marker="o", ls="none", mfc="none", color="black",
+                label=f"its landmarks ({len(landmarks)})",
+            )
+        )  # fmt: skip
+    title = (
+        f"{log_name(log)}: {localizer} against the GPS — RMSE {m['gps_rmse_m']:.2f} m aligned, "
+        f"{m['gps_rmse_unaligned_m']:.2f} m not; {screen.dropouts} dropouts "
+        f"({screen.dropout_s:.0f} s)"
+    )
     return _finish_path_axes(fig, ax, handles, box, title)
 
 

@@ -365,6 +365,8 @@ def _evaluate(r: _Replay):
             )
     if "relations" in r.trial.metadata and len(est) > 1:
         metrics.update(M.relation_errors(est, np.array(r.trial.metadata["relations"]["rows"])))
+    if "gps" in r.trial.metadata and len(est) > 1:
+        metrics.update(M.gps_errors(est, np.array(r.trial.metadata["gps"]["rows"])))
     if r.world is not None:
         area = pipeline.mapper.grid.resolution**2
         metrics.update(M.map_scores(pipeline.mapper.occupied_xy(), area, r.outlines))
@@ -434,6 +436,15 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
         files.update(
             write_figures(out, pipeline, est, gt, r.outlines, localizer=r.localizer, log=r.log_path)
         )
+    if figures and "gps" in r.trial.metadata and len(est) > 1:
+        from experiments.report import gps_figure, save
+
+        loc = pipeline.localizer
+        marks = loc.landmarks() if isinstance(loc, LandmarkMapper) else {}
+        xy = np.array([mean for mean, _ in marks.values()]).reshape(-1, 2)
+        rows = np.array(r.trial.metadata["gps"]["rows"])
+        fig = gps_figure(est, rows, xy, localizer=r.localizer, log=r.log_path)
+        files["gps_png"] = save(fig, out / "gps.png")
     if pipeline.hygiene is not None:
         metrics["map_hygiene"] = dict(pipeline.hygiene.counts)
     files["metrics"] = out / "metrics.json"

@@ -8,9 +8,11 @@ from experiments.metrics import (
     ate,
     braking_impulse,
     distance_to_outlines,
+    gps_errors,
     heading_errors,
     map_scores,
     rpe,
+    screen_gps,
 )
 from hardware.geometry import compose
 from hardware.messages import BrakeCommand
@@ -137,3 +139,37 @@ def test_slip_errors_against_the_true_effective_k():
     assert out["k"] == pytest.approx([0.11, 0.05]) and out["k_sigma"] == pytest.approx([0.01, 0.02])
     assert out["relative_error"][0] == pytest.approx(0.1) and out["relative_error"][1] is None
     assert "relative_error" not in slip_errors(np.zeros(2), cov, None)
+
+
+def test_gps_errors_by_hand_with_a_jump_and_a_dropout():
+    # the estimate drives along x at 1 m/s for 10 s; the GPS reads it 0.5 m to the left
+    # (y + 0.5), at 5 fixes/s, but has nothing from 4 s to 6 s (a dropout) and one fix
+    # 30 m off at t = 8 s (a jump: 150 m/s from the fix before)
+    t = np.linspace(0.0, 10.0, 101)
+    est = Trajectory(t, np.column_stack([t, np.zeros_like(t), np.zeros_like(t)]))
+    tg = np.round(np.arange(0.0, 10.0 + 1e-9, 0.2), 6)
+    tg = tg[(tg <= 4.0) | (tg >= 6.0)]
+    rows = np.column_stack([tg, tg, np.full_like(tg, 0.5)])
+    rows[tg == 8.0, 2] = 30.5
+    m = gps_errors(est, rows)
+    assert m["gps_jumps_left_out"] == 1 and m["gps_dropouts"] == 1
+    assert m["gps_dropout_s"] == pytest.approx(2.0)
+    assert m["gps_fixes_used"] == len(tg) - 1
+    assert m["gps_rmse_unaligned_m"] == pytest.approx(0.5)  # every kept fix 0.5 m off
+    assert m["gps_rmse_m"] == pytest.approx(0.0, abs=1e-9)  # a shift: aligned away
+    assert m["gps_max_m"] == pytest.approx(0.0, abs=1e-9)
+    # the fix after the jump is measured from the last kept one, so it stays
+    screen = screen_gps(rows)
+    assert screen.kept.tolist() == (tg != 8.0).tolist()
+    # with the jump kept (a looser speed limit) the RMSE would carry it
+    loose = gps_errors(est, rows, max_speed_mps=1000.0)
+    assert loose["gps_jumps_left_out"] == 0 and loose["gps_rmse_unaligned_m"] > 4.0
+
+
+def test_gps_errors_outside_the_estimate_are_not_used():
+    t = np.linspace(0.0, 2.0, 21)
+    est = Trajectory(t, np.column_stack([t, np.zeros_like(t), np.zeros_like(t)]))
+    rows = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 1.0, 0.0], [5.0, 9.0, 9.0]])
+    m = gps_errors(est, rows)
+    assert m["gps_fixes_used"] == 2 and m["gps_rmse_unaligned_m"] == pytest.approx(0.0)
+    assert math.isnan(gps_errors(est, rows[:1])["gps_rmse_m"])

@@ -199,3 +199,33 @@ def test_ekf_slam_keeps_clutter_out_of_its_map():
     assert ate(loc.trajectory(), gt)["ate_rmse_m"] < 0.15
     off = ekf(noisy, association_enabled=False)
     assert len(off.landmarks()) == 0 and off.diagnostics()["without_id"] == d["without_id"]
+
+
+def test_victoria_park_first_five_minutes_ekf_slam_against_the_gps():
+    """Real tree detections without IDs: EKF-SLAM with JCBB against the GPS (jumps left
+    out), where dead reckoning is off by tens of metres."""
+    from experiments.config import configure
+    from experiments.metrics import gps_errors
+    from hardware.datasets import open_dataset
+    from slam.base import LOCALIZERS
+    from tests.conftest import SHARED_DATA
+
+    folder = SHARED_DATA / "victoria_park"
+    if not folder.exists():
+        pytest.skip(f"dataset victoria_park not found at {folder}")
+    source = open_dataset("victoria-park", folder)
+    messages = [m for m in source.messages() if m.t < 322.0]  # its first 300 s
+    gps = np.array(source.metadata["gps"]["rows"])
+    errors = {}
+    for name in ("dead-reckoning", "ekf-slam"):
+        config = configure(LOCALIZERS, name, source.metadata).config
+        loc = create(name, source.calibration, config, initial_pose=source.initial_pose)
+        for m in messages:
+            loc.process(m)
+        errors[name] = gps_errors(loc.trajectory(), gps)
+    assert (
+        errors["ekf-slam"]["gps_fixes_used"] > 900 and errors["ekf-slam"]["gps_jumps_left_out"] > 0
+    )
+    assert errors["dead-reckoning"]["gps_rmse_m"] > 15.0
+    assert errors["ekf-slam"]["gps_rmse_m"] < 5.5
+    assert 150 <= len(loc.landmarks()) <= 400  # trees seen in those minutes, not clutter
