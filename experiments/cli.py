@@ -307,6 +307,13 @@ def replay(
     linger: _ReplayLingerOpt = None,
     calibration: CalibrationOpt = None,
     mitigation: MitigationOpt = None,
+    scan_corners: Annotated[
+        bool,
+        typer.Option(
+            "--scan-corners",
+            help="also give the localizer each laser scan's corners as landmarks without IDs",
+        ),
+    ] = False,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer).
@@ -360,6 +367,7 @@ def replay(
                 controller=controller,
                 calibration=override,
                 mitigations=names,
+                scan_corners=scan_corners,
                 progress=lambda t: update(elapsed(t)),
                 phase=update.phase,
                 observers=(

@@ -34,6 +34,7 @@ from hardware.messages import (
 from hardware.source import CommandSink, TimedSource
 from mapping.hygiene import MapHygiene
 from mapping.mapper import MapperConfig, OccupancyMapper
+from mapping.scan_features import FeatureConfig, corner_sightings
 from slam.base import FrameConsumer, Localizer, MapScorer
 from slam.trajectory import Trajectory
 
@@ -72,8 +73,11 @@ class Pipeline:
         calibration: WalkerCalibration,
         mapper_config: MapperConfig | None = None,
         reference_map: bool = True,
+        scan_features: FeatureConfig | None = None,
     ) -> None:
         self.localizer = localizer
+        # laser corners (mapping.scan_features) as sightings without IDs, after each scan
+        self.scan_features = scan_features
         self.calibration = calibration
         self.mapper = OccupancyMapper(calibration, mapper_config)
         self.reference = OccupancyMapper(calibration, mapper_config) if reference_map else None
@@ -128,6 +132,13 @@ class Pipeline:
             self.localizer.process_frame(msg, projection)
         else:
             self.localizer.process(msg)
+        if self.scan_features is not None and isinstance(msg, LaserScan):
+            corners = corner_sightings(msg, self.scan_features)
+            self.recorded.counts["scan_corners"] = self.recorded.counts.get(
+                "scan_corners", 0
+            ) + len(corners)
+            if len(corners):
+                self.localizer.process(corners)
         estimate = self.localizer.estimate()
         if self._hygienic(msg.t, estimate):
             key = msg.t if self._keep_frames else None

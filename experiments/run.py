@@ -36,6 +36,7 @@ from hardware.sim.world import World
 from hardware.source import PROPOSED_SETTINGS
 from mapping.export import save_map_server
 from mapping.mapper import MapperConfig
+from mapping.scan_features import FeatureConfig
 from slam import landmarks
 from slam.base import LOCALIZERS, LandmarkMapper, SlipEstimator, create
 from slam.motion import uses_gyro
@@ -160,6 +161,7 @@ def replay_log(
     observers: Callable[[Pipeline], Sequence[Any]] | None = None,
     calibration: CalibrationOverride | None = None,
     mitigations: Sequence[str] = (),
+    scan_corners: bool = False,
 ) -> ReplayResult:
     """Run a recorded trial (a log path, an opened log or an opened dataset) through a
     localizer and the mapper; write estimates, maps, metrics against ground truth (when
@@ -190,6 +192,8 @@ def replay_log(
     mitigations: names of encoder-slip mitigations (`experiments.mitigations`): their
     localizer fields come before `localizer_overrides`, their map hygiene replaces the
     mapper config's; the source must hold what they need (recorded in config.json).
+    scan_corners: each laser scan's corners (mapping.scan_features) also go to the
+    localizer, as range-bearing sightings without IDs (counted: `scan_corners`).
 
 
     (Its length is this docstring; the body is the four named steps.)"""
@@ -202,6 +206,8 @@ def replay_log(
         log, out_dir, localizer, localizer_config, localizer_overrides, mapper_config,
         reference_map, controller, drag_config, calibration, mitigated,
     )  # fmt: skip
+    if scan_corners:
+        r.pipeline.scan_features = FeatureConfig()
     _attach_evaluation(r, drag_metrics, observers)
     _run(r, progress)
     if phase is not None:
@@ -460,6 +466,7 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
         "source_localizer_settings_skipped": r.built.skipped,
         "localizer_overrides": r.built.overrides,
         "mitigations": r.mitigated.record(),
+        "scan_corners": pipeline.scan_features is not None,
         "calibration_override": r.calibration_override,
         "mapper_config": _jsonable(pipeline.mapper.config),
         "controller": r.controller,

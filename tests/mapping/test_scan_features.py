@@ -100,3 +100,26 @@ def test_an_empty_scan_and_bad_settings():
     assert f.lines == [] and f.corners.shape == (0, 2)
     with pytest.raises(ValueError, match="corner_angle_rad"):
         FeatureConfig(corner_angle_rad=(1.0, 0.5))
+
+
+def test_replay_gives_a_laser_logs_corners_to_ekf_slam(tmp_path):
+    """`walkerslam replay --scan-corners` on a real laser log: each scan's corners reach
+    the localizer as sightings without IDs, and EKF-SLAM maps and re-finds them."""
+    import json
+
+    from experiments.run import replay_log
+    from hardware.datasets import open_dataset
+    from tests.conftest import SHARED_DATA
+
+    log = SHARED_DATA / "carmen_corrected_logs" / "freiburg-101-corrected.log.gz"
+    if not log.exists():
+        pytest.skip(f"{log} not found")
+    res = replay_log(
+        open_dataset("carmen", log), tmp_path, localizer="ekf-slam", figures=False,
+        drag_metrics=False, reference_map=False, scan_corners=True,
+    )  # fmt: skip
+    m, d = res.metrics, res.metrics["localizer_diagnostics"]
+    assert m["messages"]["LaserScan"] == 292 and m["messages"]["scan_corners"] > 300
+    assert d["without_id"] == m["messages"]["scan_corners"]
+    assert d["new_landmarks"] >= 20 and d["associated"] > 150
+    assert json.loads((tmp_path / "config.json").read_text())["scan_corners"] is True
