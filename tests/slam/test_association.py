@@ -229,3 +229,42 @@ def test_victoria_park_first_five_minutes_ekf_slam_against_the_gps():
     assert errors["dead-reckoning"]["gps_rmse_m"] > 15.0
     assert errors["ekf-slam"]["gps_rmse_m"] < 5.5
     assert 150 <= len(loc.landmarks()) <= 400  # trees seen in those minutes, not clutter
+
+
+def _pose_nees(runs: int, without_ids: bool, steps: int) -> np.ndarray:
+    """The pose NEES of EKF-SLAM (filtered, not smoothed) at each of the first `steps`
+    steps of the drive (from the 5th), for seeds 0..runs−1: (runs, steps − 5)."""
+    out = []
+    for seed in range(runs):
+        msgs, gt = drive(seed)
+        if without_ids:
+            msgs = _without_ids(msgs)
+        loc = ekf(batched(msgs[:1]), smoother="none")
+        row = []
+        for k, step in enumerate(batched(msgs)[1:steps], start=1):
+            for m in step:
+                loc.process(m)
+            if k >= 5:
+                est = loc.estimate()
+                d = est.pose - gt.poses[k]
+                d[2] = math.remainder(d[2], 2 * math.pi)
+                row.append(float(d @ np.linalg.solve(est.covariance, d)))
+        out.append(row)
+    return np.array(out)
+
+
+@pytest.mark.parametrize("without_ids", [False, True])
+def test_ekf_slam_is_consistent_over_seeded_runs(without_ids):
+    """The pose NEES averaged over 20 runs, against its two-sided 95 % χ² bounds (3 dof
+    per run), over the first 20 s, with the IDs and with association instead. Measured:
+    its mean is 3.6 where a consistent filter has 3 (20 % overconfident), 12–13 % of the
+    steps above the upper bound, none below; later it grows towards 6, EKF-SLAM's known
+    overconfidence in heading from linearising at the estimate (BENCHMARKS.md, issue
+    14). A wrong association would put it far above."""
+    from scipy.stats import chi2
+
+    runs = 20
+    nees = _pose_nees(runs, without_ids, 200).mean(axis=0)
+    lo, hi = chi2.ppf(0.025, 3 * runs) / runs, chi2.ppf(0.975, 3 * runs) / runs
+    assert 2.5 < nees.mean() < 4.0
+    assert np.mean(nees > hi) < 0.2 and np.all(nees >= lo)
