@@ -109,11 +109,9 @@ def test_replay_gives_a_laser_logs_corners_to_ekf_slam(tmp_path):
 
     from experiments.run import replay_log
     from hardware.datasets import open_dataset
-    from tests.conftest import SHARED_DATA
+    from tests.hardware.datasets.datasets_testdata import data_dir
 
-    log = SHARED_DATA / "carmen_corrected_logs" / "freiburg-101-corrected.log.gz"
-    if not log.exists():
-        pytest.skip(f"{log} not found")
+    log = data_dir("carmen_corrected_logs") / "freiburg-101-corrected.log.gz"
     res = replay_log(
         open_dataset("carmen", log), tmp_path, localizer="ekf-slam", figures=False,
         drag_metrics=False, reference_map=False, scan_corners=True,

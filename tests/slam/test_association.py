@@ -208,12 +208,9 @@ def test_victoria_park_first_five_minutes_ekf_slam_against_the_gps():
     from experiments.metrics import gps_errors
     from hardware.datasets import open_dataset
     from slam.base import LOCALIZERS
-    from tests.conftest import SHARED_DATA
+    from tests.hardware.datasets.datasets_testdata import data_dir
 
-    folder = SHARED_DATA / "victoria_park"
-    if not folder.exists():
-        pytest.skip(f"dataset victoria_park not found at {folder}")
-    source = open_dataset("victoria-park", folder)
+    source = open_dataset("victoria-park", data_dir("victoria_park"))
     messages = [m for m in source.messages() if m.t < 322.0]  # its first 300 s
     gps = np.array(source.metadata["gps"]["rows"])
     errors = {}
