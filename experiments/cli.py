@@ -633,6 +633,8 @@ def _summary_table(summary: list[dict]) -> Table:
         "rpe_trans_m": "RPE m",
         "relations_trans_mean_m": "rel. m",
         "relations_rot_mean_deg": "rel. deg",
+        "gps_rmse_m": "GPS m",
+        "gps_rmse_unaligned_m": "GPS unal. m",
         "landmark_rmse_m": "landm. m",
         "phantom_area_m2": "phantom m²",
         "realtime_factor": "× RT",

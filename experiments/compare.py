@@ -41,6 +41,8 @@ COLUMNS = (
     "rpe_trans_m",
     "relations_trans_mean_m",
     "relations_rot_mean_deg",
+    "gps_rmse_m",
+    "gps_rmse_unaligned_m",
     "landmark_rmse_m",
     "phantom_area_m2",
     "runtime_s",
