@@ -478,6 +478,7 @@ class EkfSlam(Localizer):
         self._place_held()
         notes: dict = {**self.counts, **self.odometry.diagnostics()}
         if self.config.association_enabled:
+            notes["map_landmarks"] = len(self.index)
             notes["provisional_pending"] = len(self._provisional)
             notes["provisional_dropped"] = self._provisional.dropped
         c = self.counts

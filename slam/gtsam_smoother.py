@@ -6,7 +6,14 @@ the walker has moved `keyframe_distance_m`, turned `keyframe_angle_rad` or
 `keyframe_time_s` has passed, and also when landmarks are seen `obs_keyframe_dt_s`
 after the last keyframe. Landmark observations become `BearingRangeFactor2D` factors on
 their keyframe with a Huber-robust noise model (outliers lose their pull rather than
-being gated). With `observation="tag-pose"` a tag detection's full planar pose is used:
+being gated). Sightings without an ID (−1: Victoria Park's trees) are paired with the
+landmarks found so far by nearest neighbour on the current estimate (slam.association:
+the sighting placed at the current pose, with its measurement covariance plus
+`association_sigma_m`² for the pose and landmark errors; the χ² gate of
+`association.gate_prob`), and become factors like the others, robust, so that a wrong
+pairing can be outvoted by the right ones; a sighting that matches none is a
+provisional landmark until it is seen again (`association.confirm_sightings`).
+With `observation="tag-pose"` a tag detection's full planar pose is used:
 each tag is a `Pose2` variable (T(id)) and each detection a `BetweenFactorPose2` from
 its keyframe to the tag — position noise from the range and bearing σ, rotated into the
 tag's frame, and yaw σ = yaw_sigma_rad + yaw_sigma_per_m2·r² — also Huber-robust (far
@@ -108,6 +115,13 @@ from slam.absolute import (
     offset_position,
     offset_position_jacobian,
 )
+from slam.association import (
+    FIRST_ASSOCIATED_ID,
+    AssociationConfig,
+    Provisional,
+    mahalanobis2,
+    nearest_neighbour,
+)
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.gtsam_slip import slip_odometry_factor, slip_walk_factor
 from slam.measurement import (
@@ -117,6 +131,8 @@ from slam.measurement import (
     LandmarkObservation,
     ObservationModel,
     Sightings,
+    landmark_from_range_bearing,
+    landmark_from_range_bearing_jacobians,
 )
 from slam.motion import (
     Increment,
@@ -250,6 +266,12 @@ class GtsamConfig(LocalizerConfig):
     after the last keyframe start a new one (else they attach to it).
     range_sigma_m + range_sigma_frac·r, bearing_sigma_rad: landmark measurement noise;
     huber_k: robust kernel threshold in standard deviations.
+    association_enabled, association, association_sigma_m: sightings without IDs
+    (module docstring); association.method is EKF-SLAM's (gtsam pairs by nearest
+    neighbour), its gates and provisional landmarks apply.
+    update_per_sighting: iSAM2 updates at every landmark sighting (the estimate uses
+    them at once); False: they wait for the next keyframe's update (a fast vehicle with
+    a laser that sees trees in every scan: Victoria Park proposes it).
     use_landmarks: False ignores landmark observations (tags, range-bearing): the
     smoother then runs on odometry, absolute fixes and scan matching alone (to study
     scan correction without tags on a log that has them).
@@ -289,6 +311,10 @@ class GtsamConfig(LocalizerConfig):
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     huber_k: float = 1.345
+    association_enabled: bool = True
+    association: AssociationConfig = field(default_factory=AssociationConfig)
+    association_sigma_m: float = 1.0
+    update_per_sighting: bool = True
     use_landmarks: bool = True
     observation: ObservationModel = ObservationModel.RANGE_BEARING
     yaw_sigma_rad: float = 0.02
@@ -399,6 +425,12 @@ class GtsamSmoother(Localizer):
         self._marginal: np.ndarray | None = None
         self._cache: tuple[int, Trajectory] | None = None
         self.counts = {"keyframes": 0, "landmark_factors": 0, "without_id": 0, "updates": 0}
+        if config.association_enabled:
+            self.counts.update(associated=0, ambiguous=0)
+        self._provisional = Provisional(config.association)
+        self._next_id = FIRST_ASSOCIATED_ID
+        # landmarks: their last known position and the revision it was read at
+        self._found_xy: dict[int, tuple[np.ndarray, int]] = {}
         self.counts["odometry_gaps"] = 0
         if config.absolute.enabled:
             self.counts.update(compass_factors=0, position_factors=0)
@@ -625,37 +657,100 @@ class GtsamSmoother(Localizer):
             return
         self._attach(obs.t)
         c = self.config
+        unknown = []
         for lid, z, yaw in zip(obs.ids, obs.z, obs.yaw, strict=True):
             lid = int(lid)
             if lid < 0:
                 self.counts["without_id"] += 1
+                unknown.append(z)
                 continue
-            # The landmark as seen from the keyframe (the walker moved self._delta since).
-            p = np.array([z[0] * math.cos(z[1]), z[0] * math.sin(z[1])])
-            c_, s_ = math.cos(self._delta[2]), math.sin(self._delta[2])
-            q = self._delta[:2] + np.array([c_ * p[0] - s_ * p[1], s_ * p[0] + c_ * p[1]])
-            r, b = float(np.hypot(*q)), float(math.atan2(q[1], q[0]))
-            sr = c.range_sigma_m + c.range_sigma_frac * r
             if self._tags:
                 if not math.isfinite(yaw):
                     self.counts["without_yaw"] += 1
                     continue
+                q, r, b, sr = self._from_keyframe(z)
                 self._tag_factor(lid, q, r, b, sr, float(wrap_angle(yaw + self._delta[2])))
                 continue
-            noise = gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k),
-                gtsam.noiseModel.Diagonal.Sigmas(np.array([c.bearing_sigma_rad, sr])),
-            )
-            self._graph.add(
-                gtsam.BearingRangeFactor2D(X(self._kf), L(lid), gtsam.Rot2(b), r, noise)
-            )
-            if lid not in self._landmarks:
-                self._landmarks.add(lid)
-                a = self._kf_pose[2] + b
-                guess = self._kf_pose[:2] + r * np.array([math.cos(a), math.sin(a)])
-                self._values.insert(L(lid), gtsam.Point2(*guess))
-            self.counts["landmark_factors"] += 1
-        self._flush()
+            self._range_bearing_factor(lid, z)
+        if unknown and c.association_enabled and not self._tags:
+            self._associate(obs.t, np.array(unknown, dtype=float))
+        if c.update_per_sighting:
+            self._flush()
+
+    def _from_keyframe(self, z: np.ndarray) -> tuple[np.ndarray, float, float, float]:
+        """A sighting (range, bearing from the walker now) as seen from the latest
+        keyframe (the walker moved self._delta since): the point q, its range, bearing
+        and range σ."""
+        c = self.config
+        p = np.array([z[0] * math.cos(z[1]), z[0] * math.sin(z[1])])
+        c_, s_ = math.cos(self._delta[2]), math.sin(self._delta[2])
+        q = self._delta[:2] + np.array([c_ * p[0] - s_ * p[1], s_ * p[0] + c_ * p[1]])
+        r, b = float(np.hypot(*q)), float(math.atan2(q[1], q[0]))
+        return q, r, b, c.range_sigma_m + c.range_sigma_frac * r
+
+    def _range_bearing_factor(self, lid: int, z: np.ndarray) -> None:
+        """A Huber-robust BearingRangeFactor2D from the latest keyframe to L(lid)."""
+        c = self.config
+        _, r, b, sr = self._from_keyframe(z)
+        noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k),
+            gtsam.noiseModel.Diagonal.Sigmas(np.array([c.bearing_sigma_rad, sr])),
+        )
+        self._graph.add(gtsam.BearingRangeFactor2D(X(self._kf), L(lid), gtsam.Rot2(b), r, noise))
+        if lid not in self._landmarks:
+            self._landmarks.add(lid)
+            a = self._kf_pose[2] + b
+            guess = self._kf_pose[:2] + r * np.array([math.cos(a), math.sin(a)])
+            self._values.insert(L(lid), gtsam.Point2(*guess))
+            self._found_xy[lid] = (guess, -1)
+        self.counts["landmark_factors"] += 1
+
+    def _associate(self, t: float, z: np.ndarray) -> None:
+        """Sightings (n, 2) without IDs paired by nearest neighbour with the landmarks
+        found so far, at their current estimates (module docstring); the others new
+        (provisional) or ambiguous."""
+        c = self.config
+        a = c.association
+        pose = compose(self._kf_pose, self._delta)
+        world = landmark_from_range_bearing(pose, z)
+        _, j_z = landmark_from_range_bearing_jacobians(pose, z)
+        sr = c.range_sigma_m + c.range_sigma_frac * z[:, 0]
+        noise = np.zeros((len(z), 2, 2))
+        noise[:, 0, 0], noise[:, 1, 1] = sr * sr, c.bearing_sigma_rad**2
+        covs = j_z @ noise @ np.swapaxes(j_z, 1, 2) + c.association_sigma_m**2 * np.eye(2)
+        ids, xy = self._found_near(pose, float(z[:, 0].max()) + 5.0 * c.association_sigma_m)
+        pairs = np.full(len(z), -1, dtype=int)
+        d2_min = np.full(len(z), np.inf)
+        if ids:
+            d2 = mahalanobis2(world[:, None, :] - xy[None], covs[:, None])
+            d2_min = d2.min(axis=1)
+            pairs = nearest_neighbour(d2, a.gate())
+        for i in np.flatnonzero(pairs >= 0):
+            self.counts["associated"] += 1
+            self._range_bearing_factor(ids[pairs[i]], z[i])
+        new = (pairs < 0) & (d2_min > a.new_threshold())
+        self.counts["ambiguous"] += int(np.count_nonzero((pairs < 0) & ~new))
+        zn = z[new]
+        for k in self._provisional.observe(t, world[new], covs[new]):
+            self._range_bearing_factor(self._next_id, zn[k])
+            self._next_id += 1
+
+    def _found_near(self, pose: np.ndarray, reach: float) -> tuple[list[int], np.ndarray]:
+        """The associated landmarks whose last known position is within reach of the
+        pose, at their current estimates (refreshed from iSAM2 once per update)."""
+        near = [
+            lid
+            for lid, (p, _) in self._found_xy.items()
+            if math.hypot(p[0] - pose[0], p[1] - pose[1]) <= reach
+        ]
+        xy = np.empty((len(near), 2))
+        for k, lid in enumerate(near):
+            p, rev = self._found_xy[lid]
+            if rev != self.revision and self.isam.valueExists(L(lid)):
+                p = np.asarray(self.isam.calculateEstimatePoint2(L(lid)), dtype=float)
+                self._found_xy[lid] = (p, self.revision)
+            xy[k] = p
+        return near, xy
 
     def _tag_factor(self, lid: int, q: np.ndarray, r: float, b: float, sr: float, psi: float):
         """BetweenFactorPose2 keyframe → tag T(lid) seen at q (keyframe frame), range r,
@@ -951,6 +1046,10 @@ class GtsamSmoother(Localizer):
     def diagnostics(self) -> dict:
         self._place_held()
         notes: dict = {**self.counts, **self.odometry.diagnostics()}
+        if self.config.association_enabled:
+            notes["map_landmarks"] = len(self._landmarks)
+            notes["provisional_pending"] = len(self._provisional)
+            notes["provisional_dropped"] = self._provisional.dropped
         if (slip := self.slip_estimate()) is not None:
             notes.update(slip_diagnostics(*slip))
         if self.config.scan_matching:
@@ -958,7 +1057,7 @@ class GtsamSmoother(Localizer):
             if self.counts["scan_factors"] + self.counts["loop_closures"] == 0:
                 notes["note"] = "scan matching on, but no scan was matched: odometry only"
         elif self.counts["landmark_factors"] == 0 and fused_count(self.counts) == 0:
-            notes["note"] = "no landmark observations with an ID: odometry only"
+            notes["note"] = "no landmark observations in the map: odometry only"
         return notes
 
 

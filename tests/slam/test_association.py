@@ -201,9 +201,10 @@ def test_ekf_slam_keeps_clutter_out_of_its_map():
     assert len(off.landmarks()) == 0 and off.diagnostics()["without_id"] == d["without_id"]
 
 
-def test_victoria_park_first_five_minutes_ekf_slam_against_the_gps():
-    """Real tree detections without IDs: EKF-SLAM with JCBB against the GPS (jumps left
-    out), where dead reckoning is off by tens of metres."""
+def test_victoria_park_first_five_minutes_against_the_gps():
+    """Real tree detections without IDs: EKF-SLAM with JCBB and gtsam with nearest
+    neighbour against the GPS (jumps left out), where dead reckoning is off by tens of
+    metres."""
     from experiments.config import configure
     from experiments.metrics import gps_errors
     from hardware.datasets import open_dataset
@@ -214,7 +215,7 @@ def test_victoria_park_first_five_minutes_ekf_slam_against_the_gps():
     messages = [m for m in source.messages() if m.t < 322.0]  # its first 300 s
     gps = np.array(source.metadata["gps"]["rows"])
     errors = {}
-    for name in ("dead-reckoning", "ekf-slam"):
+    for name in ("dead-reckoning", "ekf-slam", "gtsam"):
         config = configure(LOCALIZERS, name, source.metadata).config
         loc = create(name, source.calibration, config, initial_pose=source.initial_pose)
         for m in messages:
@@ -225,7 +226,8 @@ def test_victoria_park_first_five_minutes_ekf_slam_against_the_gps():
     )
     assert errors["dead-reckoning"]["gps_rmse_m"] > 15.0
     assert errors["ekf-slam"]["gps_rmse_m"] < 5.5
-    assert 150 <= len(loc.landmarks()) <= 400  # trees seen in those minutes, not clutter
+    assert errors["gtsam"]["gps_rmse_m"] < 5.5
+    assert 150 <= loc.diagnostics()["map_landmarks"] <= 400  # trees seen, not clutter
 
 
 def _pose_nees(runs: int, without_ids: bool, steps: int) -> np.ndarray:
@@ -265,3 +267,33 @@ def test_ekf_slam_is_consistent_over_seeded_runs(without_ids):
     lo, hi = chi2.ppf(0.025, 3 * runs) / runs, chi2.ppf(0.975, 3 * runs) / runs
     assert 2.5 < nees.mean() < 4.0
     assert np.mean(nees > hi) < 0.2 and np.all(nees >= lo)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_gtsam_without_ids_finds_the_landmarks_and_tracks_as_with_them(seed):
+    from slam.gtsam_smoother import GtsamConfig
+
+    steps, gt = drive(seed)
+    noise = MotionNoise(
+        velocity_frac=NOISE.v * math.sqrt(0.1), omega_frac=0.0,
+        omega_floor=NOISE.omega * math.sqrt(0.1),
+    )  # fmt: skip
+    config = GtsamConfig(
+        noise=noise, range_sigma_m=NOISE.range_m, range_sigma_frac=0.0,
+        bearing_sigma_rad=NOISE.bearing_rad,
+    )  # fmt: skip
+    runs = {}
+    for label, msgs in (("known", steps), ("blind", _without_ids(steps))):
+        loc = create("gtsam", WalkerCalibration(), config)
+        for step in batched(msgs):
+            for m in step:
+                loc.process(m)
+        runs[label] = loc
+    blind = runs["blind"]
+    assert blind.diagnostics()["map_landmarks"] == 8
+    assert min(blind.landmarks()) == FIRST_ASSOCIATED_ID
+    known_ate = ate(runs["known"].trajectory(), gt)["ate_rmse_m"]
+    assert ate(blind.trajectory(), gt)["ate_rmse_m"] < 1.1 * known_ate
+    true = np.array(list(LANDMARKS.values()), dtype=float)
+    for mean, _ in blind.landmarks().values():
+        assert np.min(np.hypot(*(true - mean).T)) < 0.6
