@@ -26,7 +26,8 @@ the map; an observation of the next times that falls within the gate of a provis
 point is another sighting of it; after `confirm_sightings` sightings it becomes a map
 landmark, and one not confirmed within `provisional_max_age_s` is dropped (clutter, a
 false detection, a passing person). The IDs of landmarks found this way count up from
-FIRST_ASSOCIATED_ID, so that they never collide with known ones.
+FIRST_ASSOCIATED_ID, so that they never collide with known ones. `Discovery` is that
+step for a localizer: new or ambiguous, provisional, confirmed with an ID.
 """
 
 from __future__ import annotations
@@ -252,3 +253,43 @@ class Provisional:
                 confirmed.append(i)
         self._items = [p for j, p in enumerate(self._items) if j not in done] + new
         return confirmed
+
+
+class Discovery:
+    """What becomes of the sightings a localizer could not pair (module docstring), the
+    same for every localizer: a sighting farther than `new_prob` from every landmark is
+    new and goes to the provisional landmarks, the others are ambiguous (dropped,
+    counted); a confirmed provisional landmark takes the next ID from
+    FIRST_ASSOCIATED_ID."""
+
+    def __init__(self, config: AssociationConfig) -> None:
+        self.config = config
+        self.provisional = Provisional(config)
+        self.next_id = FIRST_ASSOCIATED_ID
+        self.ambiguous = 0
+
+    def new(self, assignment: np.ndarray, d2_min: np.ndarray) -> np.ndarray:
+        """Which of the sightings (their landmark, −1: none; their smallest squared
+        Mahalanobis distance to any landmark) are new; the unpaired others are counted
+        as ambiguous."""
+        unpaired = assignment < 0
+        new = unpaired & (d2_min > self.config.new_threshold())
+        self.ambiguous += int(np.count_nonzero(unpaired & ~new))
+        return new
+
+    def confirm(self, t: float, points: np.ndarray, covs: np.ndarray) -> list[tuple[int, int]]:
+        """New sightings at time t as world points (k, 2) with covariances (k, 2, 2), to
+        the provisional landmarks (Provisional.observe): (index among them, new ID) of
+        each that confirmed its landmark, for the caller to put in its map."""
+        out = []
+        for k in self.provisional.observe(t, points, covs):
+            out.append((k, self.next_id))
+            self.next_id += 1
+        return out
+
+    def diagnostics(self) -> dict[str, int]:
+        return {
+            "ambiguous": self.ambiguous,
+            "provisional_pending": len(self.provisional),
+            "provisional_dropped": self.provisional.dropped,
+        }

@@ -38,10 +38,9 @@ from slam.absolute import (
     fused_count,
 )
 from slam.association import (
-    FIRST_ASSOCIATED_ID,
     AssociationConfig,
     AssociationMethod,
-    Provisional,
+    Discovery,
     jcbb,
     mahalanobis2,
     nearest_neighbour,
@@ -55,6 +54,7 @@ from slam.measurement import (
     Sightings,
     landmark_from_range_bearing,
     landmark_from_range_bearing_jacobians,
+    placed_sightings,
     range_bearing,
     range_bearing_jacobians,
 )
@@ -137,9 +137,8 @@ class EkfSlam(Localizer):
         self.index: dict[int, int] = {}  # landmark id → state offset
         self.counts = {"updates": 0, "new_landmarks": 0, "gated": 0, "without_id": 0}
         if config.association_enabled:
-            self.counts.update(associated=0, ambiguous=0, jcbb_changed=0, jcbb_budget=0)
-        self._provisional = Provisional(config.association)
-        self._next_id = FIRST_ASSOCIATED_ID
+            self.counts.update(associated=0, jcbb_changed=0, jcbb_budget=0)
+        self._discovery = Discovery(config.association)
         if config.absolute.enabled:
             self.counts.update(compass_updates=0, position_updates=0, absolute_gated=0)
         self._gates = {dof: config.absolute.gate(dof) for dof in (1, 2)}
@@ -351,18 +350,13 @@ class EkfSlam(Localizer):
         for i in np.flatnonzero(assignment >= 0):
             self.counts["associated"] += 1
             self._update(int(offsets[assignment[i]]), z[i], amend=not between)
-        rest = assignment < 0
-        new = rest & (d2_min > c.new_threshold())
-        self.counts["ambiguous"] += int(np.count_nonzero(rest & ~new))
+        new = self._discovery.new(assignment, d2_min)
         if not new.any():
             return
-        pose, zn = self._x[:3], z[new]
-        j_s, j_z = landmark_from_range_bearing_jacobians(pose, zn)
-        noise = var[new][:, :, None] * np.eye(2)
-        covs = j_s @ self._P[:3, :3] @ np.swapaxes(j_s, 1, 2) + j_z @ noise @ np.swapaxes(j_z, 1, 2)
-        for k in self._provisional.observe(t, landmark_from_range_bearing(pose, zn), covs):
-            self._add_landmark(self._next_id, zn[k])
-            self._next_id += 1
+        zn = z[new]
+        points, covs = placed_sightings(self._x[:3], zn, var[new], self._P[:3, :3])
+        for k, lid in self._discovery.confirm(t, points, covs):
+            self._add_landmark(lid, zn[k])
 
     def _add_landmark(self, lid: int, z: np.ndarray) -> None:
         pose = self._x[:3]
@@ -479,8 +473,7 @@ class EkfSlam(Localizer):
         notes: dict = {**self.counts, **self.odometry.diagnostics()}
         if self.config.association_enabled:
             notes["map_landmarks"] = len(self.index)
-            notes["provisional_pending"] = len(self._provisional)
-            notes["provisional_dropped"] = self._provisional.dropped
+            notes.update(self._discovery.diagnostics())
         c = self.counts
         absolute = fused_count(c)
         if c["updates"] == 0 and c["new_landmarks"] == 0 and absolute == 0:

@@ -116,9 +116,8 @@ from slam.absolute import (
     offset_position_jacobian,
 )
 from slam.association import (
-    FIRST_ASSOCIATED_ID,
     AssociationConfig,
-    Provisional,
+    Discovery,
     mahalanobis2,
     nearest_neighbour,
 )
@@ -131,8 +130,7 @@ from slam.measurement import (
     LandmarkObservation,
     ObservationModel,
     Sightings,
-    landmark_from_range_bearing,
-    landmark_from_range_bearing_jacobians,
+    placed_sightings,
 )
 from slam.motion import (
     Increment,
@@ -426,9 +424,8 @@ class GtsamSmoother(Localizer):
         self._cache: tuple[int, Trajectory] | None = None
         self.counts = {"keyframes": 0, "landmark_factors": 0, "without_id": 0, "updates": 0}
         if config.association_enabled:
-            self.counts.update(associated=0, ambiguous=0)
-        self._provisional = Provisional(config.association)
-        self._next_id = FIRST_ASSOCIATED_ID
+            self.counts["associated"] = 0
+        self._discovery = Discovery(config.association)
         # landmarks: their last known position and the revision it was read at
         self._found_xy: dict[int, tuple[np.ndarray, int]] = {}
         self.counts["odometry_gaps"] = 0
@@ -712,12 +709,10 @@ class GtsamSmoother(Localizer):
         c = self.config
         a = c.association
         pose = compose(self._kf_pose, self._delta)
-        world = landmark_from_range_bearing(pose, z)
-        _, j_z = landmark_from_range_bearing_jacobians(pose, z)
         sr = c.range_sigma_m + c.range_sigma_frac * z[:, 0]
-        noise = np.zeros((len(z), 2, 2))
-        noise[:, 0, 0], noise[:, 1, 1] = sr * sr, c.bearing_sigma_rad**2
-        covs = j_z @ noise @ np.swapaxes(j_z, 1, 2) + c.association_sigma_m**2 * np.eye(2)
+        var = np.column_stack([sr * sr, np.full(len(z), c.bearing_sigma_rad**2)])
+        world, covs = placed_sightings(pose, z, var)
+        covs = covs + c.association_sigma_m**2 * np.eye(2)
         ids, xy = self._found_near(pose, float(z[:, 0].max()) + 5.0 * c.association_sigma_m)
         pairs = np.full(len(z), -1, dtype=int)
         d2_min = np.full(len(z), np.inf)
@@ -728,12 +723,10 @@ class GtsamSmoother(Localizer):
         for i in np.flatnonzero(pairs >= 0):
             self.counts["associated"] += 1
             self._range_bearing_factor(ids[pairs[i]], z[i])
-        new = (pairs < 0) & (d2_min > a.new_threshold())
-        self.counts["ambiguous"] += int(np.count_nonzero((pairs < 0) & ~new))
+        new = self._discovery.new(pairs, d2_min)
         zn = z[new]
-        for k in self._provisional.observe(t, world[new], covs[new]):
-            self._range_bearing_factor(self._next_id, zn[k])
-            self._next_id += 1
+        for k, lid in self._discovery.confirm(t, world[new], covs[new]):
+            self._range_bearing_factor(lid, zn[k])
 
     def _found_near(self, pose: np.ndarray, reach: float) -> tuple[list[int], np.ndarray]:
         """The associated landmarks whose last known position is within reach of the
@@ -1048,8 +1041,7 @@ class GtsamSmoother(Localizer):
         notes: dict = {**self.counts, **self.odometry.diagnostics()}
         if self.config.association_enabled:
             notes["map_landmarks"] = len(self._landmarks)
-            notes["provisional_pending"] = len(self._provisional)
-            notes["provisional_dropped"] = self._provisional.dropped
+            notes.update(self._discovery.diagnostics())
         if (slip := self.slip_estimate()) is not None:
             notes.update(slip_diagnostics(*slip))
         if self.config.scan_matching:

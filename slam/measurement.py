@@ -115,6 +115,20 @@ def landmark_from_range_bearing_jacobians(
     return j_s, j_z
 
 
+def placed_sightings(
+    pose: np.ndarray, z: np.ndarray, variances: np.ndarray, pose_cov: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Range-bearing sightings z (k, 2) from `pose` as world points (k, 2) with their
+    covariances (k, 2, 2): J_z R J_zᵀ, R = diag(variances (k, 2): range, bearing), plus
+    J_s P J_sᵀ when the pose's covariance P is given (first order, inverse model)."""
+    j_s, j_z = landmark_from_range_bearing_jacobians(pose, z)
+    noise = np.asarray(variances, dtype=float)[:, :, None] * np.eye(2)
+    covs = j_z @ noise @ np.swapaxes(j_z, 1, 2)
+    if pose_cov is not None:
+        covs = covs + j_s @ pose_cov @ np.swapaxes(j_s, 1, 2)
+    return landmark_from_range_bearing(pose, z), covs
+
+
 @dataclass(frozen=True, eq=False)
 class LandmarkObservation:
     """Observations of landmarks with known IDs at one time, in the walker frame.
