@@ -97,6 +97,35 @@ def screen_gps(rows: np.ndarray, max_gap_s: float = 1.0, max_speed_mps: float = 
     return GpsScreen(kept, int(len(rows) - kept.sum()), int(long.sum()), float(gaps[long].sum()))
 
 
+@dataclass(frozen=True)
+class GpsFit:
+    """The GPS fixes within an estimate's time span, screened (`screen_gps`), and the SE(2)
+    alignment (rotation, translation) of the estimate onto the kept ones (None when
+    fewer than two are kept)."""
+
+    fixes: np.ndarray  # (n, 3) t, x, y within the estimate's span
+    screen: GpsScreen
+    alignment: tuple[np.ndarray, np.ndarray] | None
+
+    @property
+    def kept(self) -> np.ndarray:
+        return self.fixes[self.screen.kept]
+
+
+def fit_gps(
+    est: Trajectory, rows: np.ndarray, max_gap_s: float = 1.0, max_speed_mps: float = 10.0
+) -> GpsFit:
+    """The estimate against GPS fixes (n, 3: t, x, y): `GpsFit`."""
+    rows = np.asarray(rows, dtype=float).reshape(-1, 3)
+    inside = rows[(rows[:, 0] >= est.t[0]) & (rows[:, 0] <= est.t[-1])]
+    screen = screen_gps(inside, max_gap_s, max_speed_mps)
+    kept = inside[screen.kept]
+    alignment = None
+    if len(kept) >= 2:
+        alignment = align_se2(est.interpolate(kept[:, 0])[:, :2], kept[:, 1:])
+    return GpsFit(inside, screen, alignment)
+
+
 def gps_errors(
     est: Trajectory, rows: np.ndarray, max_gap_s: float = 1.0, max_speed_mps: float = 10.0
 ) -> dict[str, float]:
@@ -104,21 +133,19 @@ def gps_errors(
     its antenna's place on the vehicle may be unknown: position only), after `screen_gps`:
     RMSE after SE(2) alignment and unaligned, the aligned error's median, 90th percentile
     and maximum, and the fixes used, jumps left out and dropouts."""
-    rows = np.asarray(rows, dtype=float).reshape(-1, 3)
-    inside = rows[(rows[:, 0] >= est.t[0]) & (rows[:, 0] <= est.t[-1])]
-    screen = screen_gps(inside, max_gap_s, max_speed_mps)
-    fixes = inside[screen.kept]
+    fit = fit_gps(est, rows, max_gap_s, max_speed_mps)
+    fixes = fit.kept
     out = {
         "gps_fixes_used": len(fixes),
-        "gps_jumps_left_out": screen.jumps,
-        "gps_dropouts": screen.dropouts,
-        "gps_dropout_s": screen.dropout_s,
+        "gps_jumps_left_out": fit.screen.jumps,
+        "gps_dropouts": fit.screen.dropouts,
+        "gps_dropout_s": fit.screen.dropout_s,
     }
-    if len(fixes) < 2:
+    if fit.alignment is None:
         return {**out, "gps_rmse_m": math.nan, "gps_rmse_unaligned_m": math.nan}
     e = est.interpolate(fixes[:, 0])[:, :2]
     g = fixes[:, 1:]
-    r, t = align_se2(e, g)
+    r, t = fit.alignment
     d = np.hypot(*(e @ r.T + t - g).T)
     out["gps_rmse_m"] = float(np.sqrt(np.mean(d * d)))
     out["gps_rmse_unaligned_m"] = float(np.sqrt(np.mean(np.sum((e - g) ** 2, axis=1))))

@@ -24,7 +24,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
-from experiments.metrics import align_se2, associate, gps_errors, screen_gps
+from experiments.metrics import GpsFit, associate
 from experiments.pipeline import Pipeline
 from hardware.messages import BrakeCommand, Collision
 from mapping.export import MapRaster, map_raster
@@ -270,25 +270,22 @@ def trajectory_figure(
 
 def gps_figure(
     est: Trajectory,
-    rows: np.ndarray,
+    fit: GpsFit,
+    errors: Mapping[str, float],
     landmarks: np.ndarray,
     *,
     localizer: str,
     log: str | Path,
 ) -> Figure:
     """gps.png: the estimated path and its landmark map, aligned (SE(2)) onto the GPS
-    fixes the metric keeps (experiments.metrics.gps_errors), over those fixes and the
-    jumps it left out."""
-    rows = np.asarray(rows, dtype=float).reshape(-1, 3)
-    inside = rows[(rows[:, 0] >= est.t[0]) & (rows[:, 0] <= est.t[-1])]
-    screen = screen_gps(inside)
-    kept = inside[screen.kept]
+    fixes the metric keeps (`fit`, experiments.metrics.fit_gps; `errors` its
+    gps_errors), over those fixes and the jumps it left out."""
+    inside, screen, kept = fit.fixes, fit.screen, fit.kept
     path = est.poses[:, :2]
-    if len(kept) >= 2:
-        r, t = align_se2(est.interpolate(kept[:, 0])[:, :2], kept[:, 1:])
+    if fit.alignment is not None:
+        r, t = fit.alignment
         path = path @ r.T + t
         landmarks = np.asarray(landmarks, dtype=float).reshape(-1, 2) @ r.T + t
-    m = gps_errors(est, rows)
     fig, ax, handles, box = _path_axes([path, inside[:, 1:]], None, [], (1.0, None))
     ax.plot(*kept[:, 1:].T, ".", ms=1.5, color=TRUTH_COLOUR)
     handles.append(
@@ -314,8 +311,8 @@ def gps_figure(
             )
         )  # fmt: skip
     title = (
-        f"{log_name(log)}: {localizer} against the GPS — RMSE {m['gps_rmse_m']:.2f} m aligned, "
-        f"{m['gps_rmse_unaligned_m']:.2f} m not; {screen.dropouts} dropouts "
+        f"{log_name(log)}: {localizer} against the GPS — RMSE {errors['gps_rmse_m']:.2f} m "
+        f"aligned, {errors['gps_rmse_unaligned_m']:.2f} m not; {screen.dropouts} dropouts "
         f"({screen.dropout_s:.0f} s)"
     )
     return _finish_path_axes(fig, ax, handles, box, title)

@@ -448,8 +448,8 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
         loc = pipeline.localizer
         marks = loc.landmarks() if isinstance(loc, LandmarkMapper) else {}
         xy = np.array([mean for mean, _ in marks.values()]).reshape(-1, 2)
-        rows = np.array(r.trial.metadata["gps"]["rows"])
-        fig = gps_figure(est, rows, xy, localizer=r.localizer, log=r.log_path)
+        fit = M.fit_gps(est, np.array(r.trial.metadata["gps"]["rows"]))
+        fig = gps_figure(est, fit, metrics, xy, localizer=r.localizer, log=r.log_path)
         files["gps_png"] = save(fig, out / "gps.png")
     if pipeline.hygiene is not None:
         metrics["map_hygiene"] = dict(pipeline.hygiene.counts)
