@@ -4,6 +4,7 @@ EKF-SLAM run on range-bearing sightings whose IDs were removed."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -22,8 +23,7 @@ from slam.association import (
     mahalanobis2,
     nearest_neighbour,
 )
-from slam.base import create
-from slam.ekf_slam import EkfSlamConfig
+from slam.base import LOCALIZERS, create
 from slam.motion import MotionNoise
 from slam.trajectory import Trajectory
 
@@ -42,21 +42,25 @@ def drive(seed: int):
     return steps, Trajectory(truth[:, 0], truth[:, 1:])
 
 
-def ekf(steps, **fields):
-    """EKF-SLAM told the drive's noise, run over the steps."""
+def run(name: str, steps, **fields):
+    """The localizer `name` told the drive's noise, run over the steps."""
     noise = MotionNoise(
         velocity_frac=NOISE.v * math.sqrt(0.1), omega_frac=0.0,
         omega_floor=NOISE.omega * math.sqrt(0.1),
     )  # fmt: skip
-    config = EkfSlamConfig(
-        noise=noise, range_sigma_m=NOISE.range_m, range_sigma_frac=0.0,
-        bearing_sigma_rad=NOISE.bearing_rad, **fields,
+    config = dataclasses.replace(
+        LOCALIZERS.spec(name).config_type(), noise=noise, range_sigma_m=NOISE.range_m,
+        range_sigma_frac=0.0, bearing_sigma_rad=NOISE.bearing_rad, **fields,
     )  # fmt: skip
-    loc = create("ekf-slam", WalkerCalibration(), config)
+    loc = create(name, WalkerCalibration(), config)
     for msgs in steps:
         for m in msgs:
             loc.process(m)
     return loc
+
+
+def ekf(steps, **fields):
+    return run("ekf-slam", steps, **fields)
 
 
 class HeadingScene:
@@ -171,17 +175,18 @@ def _with_clutter(steps, rate: float, seed: int):
     return out
 
 
+@pytest.mark.parametrize("name", ["ekf-slam", "gtsam"])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_ekf_slam_without_ids_finds_the_landmarks_and_tracks_as_with_them(seed):
+def test_without_ids_the_landmarks_are_found_and_tracked_as_with_them(name, seed):
     steps, gt = drive(seed)
-    known = ekf(batched(steps))
-    blind = ekf(batched(_without_ids(steps)))
+    known = run(name, batched(steps))
+    blind = run(name, batched(_without_ids(steps)))
     d = blind.diagnostics()
-    assert len(blind.landmarks()) == 8 and min(blind.landmarks()) == FIRST_ASSOCIATED_ID
+    assert len(blind.landmarks()) == 8 and d["map_landmarks"] == 8
+    assert min(blind.landmarks()) == FIRST_ASSOCIATED_ID
     assert d["associated"] > 0.97 * d["without_id"]
-    assert (
-        ate(blind.trajectory(), gt)["ate_rmse_m"] < 1.1 * ate(known.trajectory(), gt)["ate_rmse_m"]
-    )
+    error = ate(blind.trajectory(), gt)["ate_rmse_m"]
+    assert error < 1.1 * ate(known.trajectory(), gt)["ate_rmse_m"]
     # every landmark found is one of the eight, where it is
     true = np.array(list(LANDMARKS.values()), dtype=float)
     for mean, _ in blind.landmarks().values():
@@ -267,33 +272,3 @@ def test_ekf_slam_is_consistent_over_seeded_runs(without_ids):
     lo, hi = chi2.ppf(0.025, 3 * runs) / runs, chi2.ppf(0.975, 3 * runs) / runs
     assert 2.5 < nees.mean() < 4.0
     assert np.mean(nees > hi) < 0.2 and np.all(nees >= lo)
-
-
-@pytest.mark.parametrize("seed", [0, 1])
-def test_gtsam_without_ids_finds_the_landmarks_and_tracks_as_with_them(seed):
-    from slam.gtsam_smoother import GtsamConfig
-
-    steps, gt = drive(seed)
-    noise = MotionNoise(
-        velocity_frac=NOISE.v * math.sqrt(0.1), omega_frac=0.0,
-        omega_floor=NOISE.omega * math.sqrt(0.1),
-    )  # fmt: skip
-    config = GtsamConfig(
-        noise=noise, range_sigma_m=NOISE.range_m, range_sigma_frac=0.0,
-        bearing_sigma_rad=NOISE.bearing_rad,
-    )  # fmt: skip
-    runs = {}
-    for label, msgs in (("known", steps), ("blind", _without_ids(steps))):
-        loc = create("gtsam", WalkerCalibration(), config)
-        for step in batched(msgs):
-            for m in step:
-                loc.process(m)
-        runs[label] = loc
-    blind = runs["blind"]
-    assert blind.diagnostics()["map_landmarks"] == 8
-    assert min(blind.landmarks()) == FIRST_ASSOCIATED_ID
-    known_ate = ate(runs["known"].trajectory(), gt)["ate_rmse_m"]
-    assert ate(blind.trajectory(), gt)["ate_rmse_m"] < 1.1 * known_ate
-    true = np.array(list(LANDMARKS.values()), dtype=float)
-    for mean, _ in blind.landmarks().values():
-        assert np.min(np.hypot(*(true - mean).T)) < 0.6
