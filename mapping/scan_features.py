@@ -27,7 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hardware.geometry import transform_points
 from hardware.messages import LaserScan, RangeBearings
+from mapping.scan_points import scan_hits
 
 
 @dataclass(frozen=True)
@@ -133,25 +135,15 @@ def _collinear(p: np.ndarray, q: np.ndarray, config: FeatureConfig) -> bool:
 
 def _runs(scan: LaserScan, config: FeatureConfig) -> list[np.ndarray]:
     """The returns in beam order, cut where neighbours are far apart or a beam is empty."""
-    r = np.asarray(scan.ranges, dtype=float)
+    ok = scan_hits(scan, config.max_range_m)
+    r = np.where(ok, np.asarray(scan.ranges, dtype=float), 0.0)  # (no inf · 0 below)
     a = scan.angles
-    ok = np.isfinite(r) & (r > 0) & (r < scan.range_max) & (r < config.max_range_m)
-    runs: list[np.ndarray] = []
-    current: list[np.ndarray] = []
-    for i in range(len(r)):
-        if not ok[i]:
-            if current:
-                runs.append(np.array(current))
-            current = []
-            continue
-        p = np.array([r[i] * math.cos(a[i]), r[i] * math.sin(a[i])])
-        if current and np.hypot(*(p - current[-1])) > config.break_m + config.break_frac * r[i]:
-            runs.append(np.array(current))
-            current = []
-        current.append(p)
-    if current:
-        runs.append(np.array(current))
-    return runs
+    pts = np.column_stack([r * np.cos(a), r * np.sin(a)])
+    gap = np.hypot(*np.diff(pts, axis=0).T) > config.break_m + config.break_frac * r[1:]
+    # a run starts at a return whose previous beam is empty or too far from it
+    start = ok & np.concatenate([[True], ~ok[:-1] | gap])
+    ids = np.cumsum(start)
+    return [pts[ok & (ids == k)] for k in range(1, int(ids[-1]) + 1)] if len(r) else []
 
 
 def _corner(u: Line, v: Line, config: FeatureConfig) -> np.ndarray | None:
@@ -209,10 +201,6 @@ def corner_sightings(
 ) -> RangeBearings:
     """The scan's corners as range-bearing sightings without IDs (−1) from the walker's
     reference point, the laser mounted at sensor_offset (x, y, yaw) on it."""
-    c = extract(scan, config).corners
-    ox, oy, oth = sensor_offset
-    cs, sn = math.cos(oth), math.sin(oth)
-    x = ox + cs * c[:, 0] - sn * c[:, 1]
-    y = oy + sn * c[:, 0] + cs * c[:, 1]
+    c = transform_points(np.asarray(sensor_offset, dtype=float), extract(scan, config).corners)
     ids = np.full(len(c), -1, dtype=np.int64)
-    return RangeBearings.of(scan.t, ids, np.hypot(x, y), np.arctan2(y, x))
+    return RangeBearings.of(scan.t, ids, np.hypot(c[:, 0], c[:, 1]), np.arctan2(c[:, 1], c[:, 0]))

@@ -29,6 +29,17 @@ class ScanConfig:
     no_return_as_free: bool = False
 
 
+def scan_hits(scan: LaserScan, max_range_m: float | None = None) -> np.ndarray:
+    """Which beams hit something (module docstring): a reading that is finite, > 0 and
+    < range_max, and with max_range_m not beyond it."""
+    r = np.asarray(scan.ranges, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        hit = np.isfinite(r) & (r > 0) & (r < scan.range_max)
+        if max_range_m is not None:
+            hit &= r <= max_range_m
+    return hit
+
+
 def scan_to_observation(
     scan: LaserScan,
     sensor_offset: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 0.0),
@@ -41,8 +52,7 @@ def scan_to_observation(
     if r.ndim != 1:
         raise ValueError(f"scan.ranges must have shape (N,), got {r.shape}")
     usable = scan.range_max if cfg.max_range_m is None else min(cfg.max_range_m, scan.range_max)
-    with np.errstate(invalid="ignore"):
-        returned = np.isfinite(r) & (r > 0) & (r < scan.range_max)
+    returned = scan_hits(scan)
     hit = returned & (r <= usable)
     cut = ~hit if cfg.no_return_as_free else returned & ~hit
     end_r = np.where(hit, r, usable)
