@@ -1,4 +1,5 @@
-"""FastSLAM 1.0 and 2.0 with known data association (thesis Appendix A; Montemerlo et al.).
+"""FastSLAM 1.0 and 2.0 (thesis Appendix A; Montemerlo et al.), with known data association
+or each particle its own.
 
 Each of N particles holds a walker pose and, per landmark, a small EKF (mean and
 covariance). Everything is stored as arrays; the motion is numpy on all particles at
@@ -11,6 +12,10 @@ particles numpy's per-call cost was most of the step):
     covs         (N, L, D, D)  landmark covariances
     seen         (N, L)        whether the particle has initialised landmark column l
     index        {id: column}  grows with new ids; the arrays re-allocate by doubling
+    reserved     (L,)          the columns of `index` (a known ID's column is the same in
+                               every particle)
+    hits, born   (N, L)        sightings of, and time of the first sighting of, a landmark
+                               a particle found itself (below)
     pending      (N, 3, 3)     2.0 only: motion covariance since the particle's last sample
 
 Memory is N·L·(D + D²) floats for the map (100 particles × 32 tags × 6 = 150 kB) and one
@@ -60,6 +65,28 @@ trials' proposed odometry noise, 3 seeds): 2.0 aligned ATE 0.073 m, unaligned 0.
 0.52 m, −35 %): sampling the motion model alone, its particles rarely land where the
 tags say, and the weights then pick from a poor set.
 
+Sightings without an ID (ID −1: Victoria Park's trees, laser corners; range-bearing
+only) are associated by each particle against its own map (slam.fastslam_kernels.
+associate: maximum likelihood with mutual exclusion, the χ² gates of slam.association,
+a particle that pairs nothing weighted by the density of a new landmark at the gate), so
+that the particles carry different associations and resampling keeps the ones the
+sightings agree with (Montemerlo et al. 2003). The gates allow `association_sigma_m`
+more for a confirmed landmark (its square added to the landmark's covariance, as gtsam
+does; not for a provisional one, seen seconds ago), for the error a
+particle's own covariances do not hold: a particle's landmarks are conditioned on its
+one path, and the spread of the paths that would cover the drift since a landmark was
+last seen is resampled away, so after a loop the map's landmarks are centimetres sure
+and decimetres off (on the issue-13 drive without IDs: 13 landmarks for 8 at 0, exactly
+8 at 0.3–1 m; Victoria Park: BENCHMARKS.md). The weights and the updates use the
+particle's own covariances. A sighting farther than `new_prob` from
+every landmark of a particle starts a landmark in a free column of that particle; the
+landmark is provisional until seen `confirm_sightings` times and is dropped (its column
+freed) when it is not within `provisional_max_age_s` — the particle's own version of
+slam.association.Provisional. `landmarks()` gives the best particle's confirmed ones,
+with IDs FIRST_ASSOCIATED_ID + column; the diagnostics' association counts
+(associated, ambiguous, provisional_dropped, map_landmarks) are averages over the
+particles, but map_landmarks is the best particle's.
+
 Resampling: systematic (as `filterpy.monte_carlo.systematic_resample`, but drawing its
 one uniform from the filter's generator so a run is reproducible from `seed`) when the
 effective sample size 1 / Σ w² falls below resample_threshold · N.
@@ -78,6 +105,7 @@ from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
 from slam import fastslam_kernels as kernels
+from slam.association import FIRST_ASSOCIATED_ID, AssociationConfig
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
@@ -159,6 +187,10 @@ class FastSlamConfig(LocalizerConfig):
     align_observations: the observations held for the next odometry message (see above)
     are used part way through its increment, at their own time
     (slam.motion.split_increment), not at the pose of the message before them.
+    association_enabled, association, association_sigma_m: sightings without an ID, each
+    particle's own association (module docstring; slam.association.AssociationConfig:
+    its gate_prob, new_prob, confirm_sightings and provisional_max_age_s; `method` is
+    EKF-SLAM's). False: they are counted and not used.
     """
 
     n_particles: int = 100
@@ -178,6 +210,9 @@ class FastSlamConfig(LocalizerConfig):
     weight_gain: float = 20.0
     slip: SlipEstimation = field(default_factory=SlipEstimation)
     align_observations: bool = False
+    association_enabled: bool = True
+    association: AssociationConfig = field(default_factory=AssociationConfig)
+    association_sigma_m: float = 1.0
 
     def __post_init__(self) -> None:
         if self.version not in (1, 2):
@@ -350,6 +385,9 @@ class FastSlam(Localizer):
         self.means = np.zeros((n, cap, self.dim))
         self.covs = np.zeros((n, cap, self.dim, self.dim))
         self.seen = np.zeros((n, cap), dtype=bool)
+        self.reserved = np.zeros(cap, dtype=bool)
+        self.hits = np.zeros((n, cap), dtype=np.int32)
+        self.born = np.zeros((n, cap))
         self.counts = {
             "updates": 0,
             "new_landmarks": 0,
@@ -359,6 +397,8 @@ class FastSlam(Localizer):
         }
         if self.dim == 3:
             self.counts["without_yaw"] = 0
+        self._associates = config.association_enabled and self.dim == 2
+        self._found = {"associated": 0, "ambiguous": 0, "new": 0, "provisional_dropped": 0}
         self.n_eff = float(n)
         self.n_eff_min = float(n)
         self.track = TrajectoryRecorder()
@@ -430,66 +470,133 @@ class FastSlam(Localizer):
         return diag
 
     def _column(self, lid: int) -> int:
+        """A known ID's column: the first that no particle uses (len(index) while every
+        landmark has a known ID)."""
         col = self.index.get(lid)
         if col is not None:
             return col
-        col = len(self.index)
-        cap = self.seen.shape[1]
-        if col >= cap:  # grow by doubling (amortised O(1) per new landmark)
-            n, d = self.n, self.dim
-            means = np.zeros((n, 2 * cap, d))
-            covs = np.zeros((n, 2 * cap, d, d))
-            seen = np.zeros((n, 2 * cap), dtype=bool)
-            means[:, :cap], covs[:, :cap], seen[:, :cap] = self.means, self.covs, self.seen
-            self.means, self.covs, self.seen = means, covs, seen
+        free = np.flatnonzero(~(self.reserved | self.seen.any(axis=0)))
+        if not len(free):
+            self._grow(1)
+            free = np.flatnonzero(~(self.reserved | self.seen.any(axis=0)))
+        col = int(free[0])
+        self.reserved[col] = True
         self.index[lid] = col
         self.counts["new_landmarks"] += 1
         return col
 
+    def _grow(self, free: int) -> None:
+        """Double the landmark arrays until every particle has `free` columns that
+        neither it nor a known ID uses (amortised O(1) per new landmark)."""
+        taken = self.reserved.sum() + (self.seen & ~self.reserved).sum(axis=1).max()
+        cap = self.seen.shape[1]
+        new_cap = cap
+        while new_cap - taken < free:
+            new_cap *= 2
+        if new_cap == cap:
+            return
+
+        def grown(a: np.ndarray) -> np.ndarray:
+            out = np.zeros((*a.shape[:1], new_cap, *a.shape[2:]), dtype=a.dtype)
+            out[:, :cap] = a
+            return out
+
+        self.means, self.covs, self.seen = grown(self.means), grown(self.covs), grown(self.seen)
+        self.hits, self.born = grown(self.hits), grown(self.born)
+        self.reserved = np.concatenate([self.reserved, np.zeros(new_cap - cap, dtype=bool)])
+
     def _use(self, obs: LandmarkObservation) -> None:
         items: list[tuple[int, np.ndarray]] = []
+        unknown: list[np.ndarray] = []
         for lid, z, yaw in zip(obs.ids, obs.z, obs.yaw, strict=True):
             if lid < 0:
                 self.counts["without_id"] += 1
+                if self._associates:
+                    unknown.append(np.asarray(z, dtype=float))
             elif self.dim == 3 and not np.isfinite(yaw):
                 self.counts["without_yaw"] += 1
             else:
                 zz = np.array([z[0], z[1], yaw]) if self.dim == 3 else np.asarray(z, dtype=float)
                 items.append((int(lid), zz))
-        if items:
-            self._update(items)
+        if items or unknown:
+            self._update(obs.t, items, np.array(unknown).reshape(-1, 2))
 
-    def _update(self, items: list[tuple[int, np.ndarray]]) -> None:
+    def _update(self, t: float, items: list[tuple[int, np.ndarray]], unknown: np.ndarray) -> None:
         """The landmark observations of one time: FastSLAM's four steps (compiled:
-        slam.fastslam_kernels; the random draws here)."""
+        slam.fastslam_kernels; the random draws here). items: (ID, z) of known landmarks;
+        unknown (M, 2): sightings without an ID."""
+        n, gain = self.n, self.config.weight_gain
         cols = np.array([self._column(lid) for lid, _ in items], dtype=np.int64)
-        z = np.array([zz for _, zz in items])
-        r = np.array([self._noise(zz) for _, zz in items])
+        z = np.array([zz for _, zz in items]).reshape(-1, self.dim)
+        r = np.array([self._noise(zz) for _, zz in items]).reshape(-1, self.dim)
         v2 = self.config.version == 2
         logw = self.log_weights.copy()
         mu = self.poses.copy()
         sigma = self.pending.copy() if v2 else self.pending
-        had_seen = np.empty((len(items), self.n), dtype=bool)
+        had_seen = np.empty((len(items), n), dtype=bool)
         # 1. fold the observations of known landmarks into the proposal and the weights
         used = kernels.fold(
             mu, sigma, self.means, self.covs, self.seen, self._w, cols, z, r,
-            self.gate, self.config.weight_gain, v2, logw, had_seen,
+            self.gate, gain, v2, logw, had_seen,
         )  # fmt: skip
         self.counts["gated"] += int(np.sum(used == 0))
         self.counts["updates"] += int(np.sum(used == 1))
-        if not used.any():
+        # ... and the sightings without an ID, each particle pairing them itself
+        m = len(unknown)
+        cols_u = np.full((m, n), -1, dtype=np.int64)
+        status = np.zeros((m, n), dtype=np.int8)
+        r_u = np.array([self._noise(zz) for zz in unknown]).reshape(-1, 2)
+        if m:
+            a = self.config.association
+            self._grow(m)
+            kernels.associate(
+                mu, sigma, self.means, self.covs, self.seen, self._confirmed() | self.reserved,
+                unknown, r_u, self.config.association_sigma_m**2, a.gate(),
+                a.new_threshold(), gain, v2, logw, cols_u, status,
+            )  # fmt: skip
+        if not used.any() and not m:
             return
         if v2:  # 2. sample the poses from the proposal (1.0 sampled them with the motion)
-            kernels.sample(mu, sigma, self.rng.standard_normal((self.n, 3)), self.poses)
+            kernels.sample(mu, sigma, self.rng.standard_normal((n, 3)), self.poses)
             self.pending[:] = 0.0
         # 3. landmark EKF updates at the sampled poses, new landmarks initialised
-        kernels.update_landmarks(
-            self.poses, self.means, self.covs, self.seen, cols, z, r, used, had_seen,
-            self.config.weight_gain, logw,
-        )  # fmt: skip
+        for c, zz, rr, st, had in (
+            (np.repeat(cols[:, None], n, axis=1), z, r, np.repeat(used[:, None], n, axis=1),
+             had_seen),
+            (cols_u, unknown, r_u, status, np.ones((m, n), dtype=bool)),
+        ):  # fmt: skip
+            if len(zz):
+                kernels.update_landmarks(
+                    self.poses, self.means, self.covs, self.seen, self.reserved, c, zz, rr,
+                    st, had, gain, logw,
+                )  # fmt: skip
+        if m:
+            self._found_landmarks(t, cols_u, status)
         self._normalise(logw)  # 4.
         self.track.amend(self._mean_pose())
         self.revision += 1
+
+    def _found_landmarks(self, t: float, cols: np.ndarray, status: np.ndarray) -> None:
+        """Book-keeping of the landmarks the particles found themselves: sightings
+        counted, new ones born at t, provisional ones past their age dropped."""
+        o, i = np.nonzero(status == 1)
+        np.add.at(self.hits, (i, cols[o, i]), 1)
+        o, i = np.nonzero(status == 2)
+        self.hits[i, cols[o, i]] = 1
+        self.born[i, cols[o, i]] = t
+        a = self.config.association
+        stale = (
+            self.seen
+            & ~self.reserved
+            & (self.hits < a.confirm_sightings)
+            & (t - self.born > a.provisional_max_age_s)
+        )
+        self.seen &= ~stale
+        found = self._found
+        found["associated"] += int(np.count_nonzero(status == 1))
+        found["new"] += int(np.count_nonzero(status == 2))
+        found["ambiguous"] += int(np.count_nonzero(status == 0))
+        found["provisional_dropped"] += int(np.count_nonzero(stale))
 
     def _normalise(self, logw: np.ndarray) -> None:
         """4. Normalise the weights; resample when they have degenerated."""
@@ -512,6 +619,8 @@ class FastSlam(Localizer):
         self.means = self.means[idx]
         self.covs = self.covs[idx]
         self.seen = self.seen[idx]
+        self.hits = self.hits[idx]
+        self.born = self.born[idx]
         if self.k is not None:
             self.k = self.k[idx]
         self._w = np.full(self.n, 1.0 / self.n)
@@ -558,11 +667,22 @@ class FastSlam(Localizer):
         self._flush()
         best = int(np.argmax(self.log_weights))
         k = self.dim if full else 2
-        return {
+        out = {
             lid: (self.means[best, col, :k].copy(), self.covs[best, col, :k, :k].copy())
             for lid, col in self.index.items()
             if self.seen[best, col]
         }
+        for col in np.flatnonzero(self._confirmed()[best]):
+            out[FIRST_ASSOCIATED_ID + int(col)] = (
+                self.means[best, col, :k].copy(),
+                self.covs[best, col, :k, :k].copy(),
+            )
+        return out
+
+    def _confirmed(self) -> np.ndarray:
+        """(N, L): the landmarks each particle found itself and saw often enough."""
+        confirm = self.config.association.confirm_sightings
+        return self.seen & ~self.reserved & (self.hits >= confirm)
 
     def slip_estimate(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The particles' weighted mean (k_left, k_right) and weighted covariance; None
@@ -582,9 +702,21 @@ class FastSlam(Localizer):
         notes["version"] = self.config.version
         notes["particles"] = self.n
         notes["landmarks"] = len(self.index)
+        if self._associates:
+            confirmed = self._confirmed()
+            best = int(np.argmax(self.log_weights))
+            notes["map_landmarks"] = int(confirmed[best].sum())  # as landmarks()
+            for key, v in self._found.items():
+                notes[key] = round(v / self.n, 1)
+            pending = self.seen & ~self.reserved & ~confirmed
+            notes["provisional_pending"] = round(float(pending.sum()) / self.n, 1)
         notes["n_eff"] = self.n_eff
         notes["n_eff_min"] = self.n_eff_min
-        if self.counts["updates"] == 0 and self.counts["new_landmarks"] == 0:
+        if (
+            self.counts["updates"] == 0
+            and self.counts["new_landmarks"] == 0
+            and not any(self._found.values())
+        ):
             notes["note"] = "no landmark observations: odometry only"
         return notes
 
@@ -593,5 +725,5 @@ SPEC = Spec(
     "fastslam",
     FastSlamConfig,
     FastSlam,
-    "FastSLAM 1.0/2.0 particle filter with per-tag landmark EKFs (known IDs)",
+    "FastSLAM 1.0/2.0 particle filter, per-landmark EKFs (known IDs or per-particle association)",
 )

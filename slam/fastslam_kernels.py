@@ -9,7 +9,10 @@ run is reproducible from its seed and draws what it drew before).
 
 Conventions: poses (N, 3); motion covariances `sigma` (N, 3, 3); landmark means (N, C, D)
 and covariances (N, C, D, D); seen (N, C); an observation m is (cols[m], z[m] (D,), its
-noise variances r[m] (D,): R is diagonal).
+noise variances r[m] (D,): R is diagonal). With known IDs every particle keeps landmark
+l in the same column; a sighting without an ID (`associate`) goes to a column each
+particle chooses for itself, so the landmark step takes a column per observation and
+particle, cols (M, N), and its status used (M, N).
 """
 
 from __future__ import annotations
@@ -101,6 +104,39 @@ def _log_normal(nu, s_inv, det, d) -> float:
     return -0.5 * (maha + math.log(det) + d * LOG_TWO_PI)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _work(d):
+    """Scratch for one observation step: ẑ, G_s, G_l, G_l Σ_l, Q, P G_sᵀ, K."""
+    return (
+        np.empty(d), np.empty((d, 3)), np.empty((d, d)), np.empty((d, d)), np.empty((d, d)),
+        np.empty((3, d)), np.empty((3, d)),
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _observe(pose, sigma_i, lm, lc, z_o, r_o, d, proposal, work, nu, s, s_inv, mu_out, sig_out):
+    """One observation z_o of the landmark (lm, lc) from a particle's proposal (pose,
+    sigma_i): ν, S = [G_s P G_sᵀ +] G_l Σ_l G_lᵀ + R and S⁻¹ (returns det S); with
+    `proposal` also its Kalman step, μ = s + K ν, Σ = P − K S Kᵀ, into mu_out (holding
+    the pose) and sig_out (may be sigma_i)."""
+    zhat, g_s, g_l, lg, q, pg, k = work
+    _predict(pose, lm, d, zhat, g_s, g_l)
+    _innovation(z_o, zhat, d, nu)
+    _gcg(g_l, lc, lg, q)
+    for a in range(d):
+        q[a, a] += r_o[a]
+    if not proposal:
+        s[:, :] = q
+        return inverse(s, d, s_inv)
+    _gcg(g_s, sigma_i, pg, s)
+    for a in range(d):
+        for b in range(d):
+            s[a, b] += q[a, b]
+    det = inverse(s, d, s_inv)
+    _kalman(sigma_i, pg, s_inv, nu, k, mu_out, sig_out)
+    return det
+
+
 @njit(cache=True, nogil=True)
 def fold(mu, sigma, means, covs, seen, w, cols, z, r, gate, gain, proposal, logw, had_seen):
     """Fold each observation of known landmarks into the proposal (`proposal`: 2.0; mu,
@@ -112,13 +148,7 @@ def fold(mu, sigma, means, covs, seen, w, cols, z, r, gate, gain, proposal, logw
     n = mu.shape[0]
     m_obs, d = z.shape
     used = np.zeros(m_obs, np.int8)
-    zhat = np.empty(d)
-    g_s = np.empty((d, 3))
-    g_l = np.empty((d, d))
-    lg = np.empty((d, d))
-    q = np.empty((d, d))
-    pg = np.empty((3, d))
-    k = np.empty((3, d))
+    work = _work(d)
     nus = np.empty((n, d))
     ss = np.empty((n, d, d))
     dets = np.empty(n)
@@ -142,24 +172,12 @@ def fold(mu, sigma, means, covs, seen, w, cols, z, r, gate, gain, proposal, logw
             if not seen[i, col]:
                 continue
             w_sum += w[i]
-            _predict(mu[i], means[i, col], d, zhat, g_s, g_l)
-            _innovation(z[o], zhat, d, nus[i])
-            _gcg(g_l, covs[i, col], lg, q)  # Q = G_l Σ_l G_lᵀ + R
-            for a in range(d):
-                q[a, a] += r[o, a]
-            s = ss[i]
-            if proposal:  # S = G_s P G_sᵀ + Q, μ = s + K ν, Σ = P − K S Kᵀ
-                _gcg(g_s, sigma[i], pg, s)
-                for a in range(d):
-                    for b in range(d):
-                        s[a, b] += q[a, b]
-                dets[i] = inverse(s, d, s_invs[i])
-                for a in range(3):
-                    mu_new[i, a] = mu[i, a]
-                _kalman(sigma[i], pg, s_invs[i], nus[i], k, mu_new[i], sig_new[i])
-            else:
-                s[:, :] = q
-                dets[i] = inverse(s, d, s_invs[i])
+            for a in range(3):
+                mu_new[i, a] = mu[i, a]
+            dets[i] = _observe(
+                mu[i], sigma[i], means[i, col], covs[i, col], z[o], r[o], d, proposal, work,
+                nus[i], ss[i], s_invs[i], mu_new[i], sig_new[i],
+            )  # fmt: skip
         # the gate: ν̄ᵀ C⁻¹ ν̄ of the weighted mixture matched to one Gaussian
         mean_nu[:] = 0.0
         for i in range(n):
@@ -214,11 +232,15 @@ def sample(mu, sigma, e, out) -> None:
 
 
 @njit(cache=True, nogil=True)
-def update_landmarks(poses, means, covs, seen, cols, z, r, used, had_seen, gain, logw) -> None:
-    """The landmark EKF step at the sampled poses for each used observation in turn;
-    landmarks new to a particle initialised from the inverse model (covariance
-    J_z R J_zᵀ); a particle that met the landmark earlier in this step (not in
-    had_seen) is weighted now."""
+def update_landmarks(
+    poses, means, covs, seen, reserved, cols, z, r, used, had_seen, gain, logw
+) -> None:
+    """The landmark EKF step at the sampled poses for each observation o and particle i
+    with used[o, i] ≠ 0, in turn; landmarks new to a particle initialised from the
+    inverse model (covariance J_z R J_zᵀ); a particle that met the landmark earlier in
+    this step (not in had_seen) is weighted now. cols[o, i] < 0: a landmark new to
+    particle i in the first column it has free and no known ID holds (`reserved`),
+    written back to cols (the caller makes sure there is one)."""
     n = poses.shape[0]
     d = z.shape[1]
     zhat = np.empty(d)
@@ -229,11 +251,16 @@ def update_landmarks(poses, means, covs, seen, cols, z, r, used, had_seen, gain,
     s_inv = np.empty((d, d))
     pg = np.empty((d, d))
     k = np.empty((d, d))
-    for o in range(len(cols)):
-        if used[o] == 0:
-            continue
-        col = cols[o]
+    for o in range(cols.shape[0]):
         for i in range(n):
+            if used[o, i] == 0:
+                continue
+            col = cols[o, i]
+            if col < 0:
+                col = 0
+                while seen[i, col] or reserved[col]:
+                    col += 1
+                cols[o, i] = col
             lm = means[i, col]
             lc = covs[i, col]
             if seen[i, col]:
@@ -264,3 +291,129 @@ def update_landmarks(poses, means, covs, seen, cols, z, r, used, had_seen, gain,
                     lm[2] = wrap(poses[i, 2] + z[o, 2])
                     lc[2, 2] = r[o, 2]
                 seen[i, col] = True
+
+
+@njit(cache=True, nogil=True)
+def associate(
+    mu, sigma, means, covs, seen, settled, z, r, slack, gate, new_gate, gain, proposal, logw,
+    cols, status,
+) -> None:  # fmt: skip
+    """Range-bearing sightings z (M, 2) without IDs, each particle its own data
+    association (FastSLAM 2.0's per-particle maximum likelihood, with mutual exclusion):
+
+    1. the squared Mahalanobis distance of every sighting to every landmark of the
+       particle, S = G_s Σ G_sᵀ + G_l (Σ_l + slack·I) G_lᵀ + R, Σ its proposal
+       covariance, slack the association's allowance for the landmarks `settled` (N, C)
+       (slam.fastslam; 0 for the others) — but for
+       the landmarks whose distance D from the proposal mean lies so far outside the
+       sightings' ranges that the range alone puts every sighting beyond the gate:
+       d² ≥ ν_r² / S_rr and S_rr ≤ tr Σ_xy + tr Σ_l + slack + max σ_r² (exact: most of a
+       large map skipped at the price of a distance);
+    2. the pairs within `gate` taken greedily, nearest first, each sighting and
+       landmark at most once;
+    3. each sighting in turn: a paired one folded into the proposal and the weight as a
+       known landmark is (`fold`); an unpaired one weighs the particle by p₀, the
+       density of a new landmark's sighting at the gate, N at squared distance `gate`
+       with S = G_s Σ G_sᵀ + 2R (the inverse model's landmark covariance seen through
+       the model again is R), so that pairing and not pairing are compared on one scale.
+
+    Writes cols[o, i] (the landmark's column, −1: none) and status[o, i]: 1 paired, 2 a
+    new landmark (beyond `new_gate` from every landmark of the particle), 0 ambiguous
+    (within `new_gate` of one but paired with none: not used)."""
+    n = mu.shape[0]
+    m_obs = z.shape[0]
+    cap = means.shape[1]
+    d = 2
+    work = _work(d)
+    zhat, g_s, g_l, lg, q, pg, _ = work
+    s = np.empty((d, d))
+    s_inv = np.empty((d, d))
+    nu = np.empty(d)
+    point = np.empty(d)
+    cand = np.empty(cap, np.int64)
+    taken = np.empty(cap, np.bool_)
+    d2 = np.empty((m_obs, cap))
+    d2_min = np.empty(m_obs)
+    r_min, r_max, var_r = np.inf, 0.0, 0.0
+    for o in range(m_obs):
+        r_min = min(r_min, z[o, 0])
+        r_max = max(r_max, z[o, 0])
+        var_r = max(var_r, r[o, 0])
+    for i in range(n):
+        nc = 0
+        spread = var_r + slack + (sigma[i, 0, 0] + sigma[i, 1, 1] if proposal else 0.0)
+        for c in range(cap):
+            if not seen[i, c]:
+                continue
+            dx = means[i, c, 0] - mu[i, 0]
+            dy = means[i, c, 1] - mu[i, 1]
+            dist = math.sqrt(dx * dx + dy * dy)
+            gap = max(dist - r_max, r_min - dist, 0.0)
+            if gap * gap > gate * (spread + covs[i, c, 0, 0] + covs[i, c, 1, 1]):
+                continue
+            _predict(mu[i], means[i, c], d, zhat, g_s, g_l)
+            _gcg(g_l, covs[i, c], lg, q)
+            if proposal:
+                _gcg(g_s, sigma[i], pg, s)
+                for a in range(d):
+                    for b in range(d):
+                        q[a, b] += s[a, b]
+            if settled[i, c]:  # G_l (slack I) G_lᵀ = slack diag(1, 1/ρ²)
+                q[0, 0] += slack
+                q[1, 1] += slack / max(dx * dx + dy * dy, 1e-12)
+            for o in range(m_obs):
+                for a in range(d):
+                    for b in range(d):
+                        s[a, b] = q[a, b]
+                    s[a, a] += r[o, a]
+                inverse(s, d, s_inv)
+                _innovation(z[o], zhat, d, nu)
+                maha = 0.0
+                for a in range(d):
+                    for b in range(d):
+                        maha += nu[a] * s_inv[a, b] * nu[b]
+                d2[o, nc] = maha
+            cand[nc] = c
+            taken[nc] = False
+            nc += 1
+        for o in range(m_obs):
+            cols[o, i] = -1
+            d2_min[o] = np.inf
+            for kk in range(nc):
+                d2_min[o] = min(d2_min[o], d2[o, kk])
+        for _ in range(min(m_obs, nc)):  # greedy: the nearest free pair within the gate
+            best, bo, bk = gate, -1, -1
+            for o in range(m_obs):
+                if cols[o, i] >= 0:
+                    continue
+                for kk in range(nc):
+                    if not taken[kk] and d2[o, kk] <= best:
+                        best, bo, bk = d2[o, kk], o, kk
+            if bo < 0:
+                break
+            cols[bo, i] = cand[bk]
+            taken[bk] = True
+        for o in range(m_obs):
+            c = cols[o, i]
+            if c >= 0:
+                det = _observe(
+                    mu[i], sigma[i], means[i, c], covs[i, c], z[o], r[o], d, proposal, work,
+                    nu, s, s_inv, mu[i], sigma[i],
+                )  # fmt: skip
+                mu[i, 2] = wrap(mu[i, 2])
+                logw[i] += _log_normal(nu, s_inv, det, d) / gain
+                status[o, i] = 1
+                continue
+            ang = mu[i, 2] + z[o, 1]
+            point[0] = mu[i, 0] + z[o, 0] * math.cos(ang)
+            point[1] = mu[i, 1] + z[o, 0] * math.sin(ang)
+            _predict(mu[i], point, d, zhat, g_s, g_l)
+            if proposal:
+                _gcg(g_s, sigma[i], pg, s)
+            else:
+                s[:, :] = 0.0
+            for a in range(d):
+                s[a, a] += 2.0 * r[o, a]
+            det = inverse(s, d, s_inv)
+            logw[i] += -0.5 * (gate + math.log(det) + d * LOG_TWO_PI) / gain
+            status[o, i] = 2 if d2_min[o] > new_gate else 0

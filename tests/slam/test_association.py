@@ -175,7 +175,7 @@ def _with_clutter(steps, rate: float, seed: int):
     return out
 
 
-@pytest.mark.parametrize("name", ["ekf-slam", "gtsam"])
+@pytest.mark.parametrize("name", ["ekf-slam", "gtsam", "fastslam"])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_without_ids_the_landmarks_are_found_and_tracked_as_with_them(name, seed):
     steps, gt = drive(seed)
@@ -193,23 +193,74 @@ def test_without_ids_the_landmarks_are_found_and_tracked_as_with_them(name, seed
         assert np.min(np.hypot(*(true - mean).T)) < 0.6
 
 
-def test_ekf_slam_keeps_clutter_out_of_its_map():
+@pytest.mark.parametrize("name", ["ekf-slam", "fastslam"])
+def test_clutter_is_kept_out_of_the_map(name):
     steps, gt = drive(0)
     noisy = batched(_with_clutter(_without_ids(steps), 1.0, seed=100))
     config = AssociationConfig(confirm_sightings=4, provisional_max_age_s=2.0)
-    loc = ekf(noisy, association=config)
+    loc = run(name, noisy, association=config)
     d = loc.diagnostics()
-    assert len(loc.landmarks()) == 8
+    assert len(loc.landmarks()) == 8 and d["map_landmarks"] == 8
     assert d["provisional_dropped"] > 150  # ~1 spurious sighting per step, 500 steps
     assert ate(loc.trajectory(), gt)["ate_rmse_m"] < 0.15
-    off = ekf(noisy, association_enabled=False)
+    off = run(name, noisy, association_enabled=False)
     assert len(off.landmarks()) == 0 and off.diagnostics()["without_id"] == d["without_id"]
 
 
+def _associate(particles, sightings, slack=0.0, settled=True):
+    """fastslam_kernels.associate on particles at the origin facing +x (no motion
+    covariance), each with its own landmarks [(x, y), ...] known to 1 cm, and
+    sightings [(range, bearing)] of σ 0.1 m and 0.01 rad: (cols, status, logw)."""
+    from slam import fastslam_kernels
+
+    n, cap = len(particles), 4
+    means = np.zeros((n, cap, 2))
+    covs = np.zeros((n, cap, 2, 2))
+    seen = np.zeros((n, cap), dtype=bool)
+    for i, landmarks in enumerate(particles):
+        for c, xy in enumerate(landmarks):
+            means[i, c], covs[i, c], seen[i, c] = xy, 1e-4 * np.eye(2), True
+    z = np.array(sightings, dtype=float)
+    r = np.tile([0.01, 1e-4], (len(z), 1))
+    cols = np.full((len(z), n), -1, dtype=np.int64)
+    status = np.zeros((len(z), n), dtype=np.int8)
+    logw = np.zeros(n)
+    a = AssociationConfig()
+    fastslam_kernels.associate(
+        np.zeros((n, 3)), np.zeros((n, 3, 3)), means, covs, seen, seen & settled, z, r,
+        slack**2, a.gate(), a.new_threshold(), 1.0, True, logw, cols, status,
+    )  # fmt: skip
+    return cols, status, logw
+
+
+def test_fastslam_each_particle_pairs_a_sighting_against_its_own_map():
+    # particle 0 has the tree where it is seen, particle 1 has it 1 m to the side
+    cols, status, logw = _associate([[(5.0, 0.0)], [(5.0, 1.0)]], [(5.0, 0.0)])
+    assert status[0].tolist() == [1, 2]  # paired / new to particle 1 (0.2 rad = 20 σ)
+    assert cols[0].tolist() == [0, -1]
+    assert logw[0] > logw[1] + 1.0  # the pairing explains it better than a new tree
+    # allowed 1 m for a settled landmark's drift, particle 1 pairs it too, and the
+    # particle that needed the allowance still weighs less
+    cols, status, logw = _associate([[(5.0, 0.0)], [(5.0, 1.0)]], [(5.0, 0.0)], slack=1.0)
+    assert status[0].tolist() == [1, 1] and logw[0] > logw[1]
+    # ... but not for a provisional one
+    _, status, _ = _associate([[(5.0, 1.0)]], [(5.0, 0.0)], slack=1.0, settled=False)
+    assert status[0].tolist() == [2]
+
+
+def test_fastslam_pairs_each_landmark_once_the_nearer_sighting_first():
+    sightings = [(5.05, 0.012), (5.0, 0.0), (5.0, 0.6)]
+    cols, status, _ = _associate([[(5.0, 0.0), (10.0, 10.0)]], sightings)
+    # the second sighting is nearer the tree at (5, 0) and takes it; the first, within
+    # the gate of that tree only, is ambiguous; the third is far from every tree: new
+    assert cols[:, 0].tolist() == [-1, 0, -1]
+    assert status[:, 0].tolist() == [0, 1, 2]
+
+
 def test_victoria_park_first_five_minutes_against_the_gps():
-    """Real tree detections without IDs: EKF-SLAM with JCBB and gtsam with nearest
-    neighbour against the GPS (jumps left out), where dead reckoning is off by tens of
-    metres."""
+    """Real tree detections without IDs: EKF-SLAM with JCBB, gtsam with nearest
+    neighbour and FastSLAM with each particle's own association against the GPS (jumps
+    left out), where dead reckoning is off by tens of metres."""
     from experiments.config import configure
     from experiments.metrics import gps_errors
     from hardware.datasets import open_dataset
@@ -219,20 +270,21 @@ def test_victoria_park_first_five_minutes_against_the_gps():
     source = open_dataset("victoria-park", data_dir("victoria_park"))
     messages = [m for m in source.messages() if m.t < 322.0]  # its first 300 s
     gps = np.array(source.metadata["gps"]["rows"])
-    errors = {}
-    for name in ("dead-reckoning", "ekf-slam", "gtsam"):
+    errors, trees = {}, {}
+    for name in ("dead-reckoning", "ekf-slam", "gtsam", "fastslam"):
         config = configure(LOCALIZERS, name, source.metadata).config
         loc = create(name, source.calibration, config, initial_pose=source.initial_pose)
         for m in messages:
             loc.process(m)
         errors[name] = gps_errors(loc.trajectory(), gps)
+        trees[name] = loc.diagnostics().get("map_landmarks")
     assert (
         errors["ekf-slam"]["gps_fixes_used"] > 900 and errors["ekf-slam"]["gps_jumps_left_out"] > 0
     )
     assert errors["dead-reckoning"]["gps_rmse_m"] > 15.0
-    assert errors["ekf-slam"]["gps_rmse_m"] < 5.5
-    assert errors["gtsam"]["gps_rmse_m"] < 5.5
-    assert 150 <= loc.diagnostics()["map_landmarks"] <= 400  # trees seen, not clutter
+    for name in ("ekf-slam", "gtsam", "fastslam"):
+        assert errors[name]["gps_rmse_m"] < 5.5, name
+        assert 150 <= trees[name] <= 400, name  # trees seen, not clutter
 
 
 def _pose_nees(runs: int, without_ids: bool, steps: int) -> np.ndarray:

@@ -425,9 +425,10 @@ def test_without_observations_it_is_dead_reckoning_and_says_so(version):
 
 
 @pytest.mark.parametrize("version", [1, 2])
-def test_outlier_is_gated_and_unknown_ids_are_counted(version):
+@pytest.mark.parametrize("associate", [False, True])
+def test_outlier_is_gated_and_unknown_ids_are_counted(version, associate):
     cal = WalkerCalibration()
-    fs = create("fastslam", cal, FastSlamConfig(version=version))
+    fs = create("fastslam", cal, FastSlamConfig(version=version, association_enabled=associate))
     fs.process(EncoderTicks(0.0, 0, 0))
     fs.process(RangeBearing(0.0, 7, 2.0, 0.0))  # landmark 7 at (2, 0)
     for k in range(1, 20):
@@ -435,14 +436,18 @@ def test_outlier_is_gated_and_unknown_ids_are_counted(version):
         fs.process(RangeBearing(0.05 * k, 7, 2.0, 0.0))
     before = fs.estimate().pose.copy()
     fs.process(RangeBearing(1.0, 7, 5.0, 1.0))  # 3 m off: an outlier
-    fs.process(RangeBearing(1.0, -1, 1.0, 0.0))  # no ID
-    assert np.allclose(fs.estimate().pose, before)
+    fs.process(RangeBearing(1.0, -1, 1.0, math.pi))  # no ID, behind: 3 m from landmark 7
+    if not associate:  # counted, not used
+        assert np.allclose(fs.estimate().pose, before)
     d = fs.diagnostics()
     assert d["gated"] == 1 and d["without_id"] == 1 and d["new_landmarks"] == 1
     assert d["updates"] == 19
     mean, cov = fs.landmarks()[7]
     assert mean == pytest.approx([2.0, 0.0], abs=1e-6)
     assert cov[0, 0] < 0.05**2
+    assert list(fs.landmarks()) == [7]  # the sighting without an ID: at most provisional
+    if associate:  # a new, provisional landmark in every particle
+        assert d["new"] == 1 and d["provisional_pending"] == 1 and d["map_landmarks"] == 0
 
 
 def test_landmark_arrays_grow_and_range_bearing_needs_no_yaw_only_in_range_bearing_mode():
