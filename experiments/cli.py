@@ -314,6 +314,13 @@ def replay(
             help="also give the localizer each laser scan's corners as landmarks without IDs",
         ),
     ] = False,
+    landmark_map: Annotated[
+        Path | None,
+        typer.Option(
+            help='a landmark map to localize in, instead of the log\'s: {"id": [x, y]} JSON, '
+            "e.g. an earlier SLAM replay's landmarks.json (particle-filter)",
+        ),
+    ] = None,
 ) -> None:
     """Replay a trial log through a localizer and the mapper; write maps, trajectories,
     metrics (with the drag metrics: phantom area over time, obstacle drag, over-steer).
@@ -321,7 +328,7 @@ def replay(
     (Long for its option list: typer reads the options from this signature.)"""
     from control.base import CONTROLLERS
     from experiments.config import configure
-    from experiments.run import check_gyro, replay_log, source_metadata
+    from experiments.run import check_gyro, given_map, replay_log, source_metadata
     from mapping.grid import GridConfig, MapModel
     from mapping.mapper import MapperConfig
     from slam.base import LOCALIZERS
@@ -329,7 +336,8 @@ def replay(
     LOCALIZERS.spec(localizer)  # an unknown name: one line, before any work
     overrides = _localizer_overrides(set_, [localizer]).get(localizer, {})
     names, mitigated = parse_mitigations(mitigation, localizer, calibration)
-    configure(LOCALIZERS, localizer, None, {**mitigated.localizer_settings, **overrides})
+    checked = configure(LOCALIZERS, localizer, None, {**mitigated.localizer_settings, **overrides})
+    given_map(landmark_map, checked.config, localizer)  # a bad map file: before any work
     _check_out_dir(out)
     if controller is not None:
         CONTROLLERS.spec(controller)  # an unknown name: one line, before any work
@@ -368,6 +376,7 @@ def replay(
                 calibration=override,
                 mitigations=names,
                 scan_corners=scan_corners,
+                landmark_map=landmark_map,
                 progress=lambda t: update(elapsed(t)),
                 phase=update.phase,
                 observers=(

@@ -38,7 +38,7 @@ from mapping.export import save_map_server
 from mapping.mapper import MapperConfig
 from mapping.scan_features import FeatureConfig
 from slam import landmarks
-from slam.base import LOCALIZERS, LandmarkMapper, SlipEstimator, create
+from slam.base import LOCALIZERS, KnownMapConfig, LandmarkMapper, SlipEstimator, create
 from slam.motion import uses_gyro
 
 # The mapper's obstacle band: what the map should show of the true world.
@@ -135,6 +135,7 @@ class _Replay:
     drag_cfg: DragConfig
     controller: str | None
     mitigated: Mitigated
+    landmark_map: str | None = None  # --landmark-map's file (given to the localizer)
     phantom: drag.PhantomSeries | None = None
     frame_drag: drag.FrameDrag | None = None
     recomputer: drag.CommandRecomputer | None = None
@@ -162,6 +163,7 @@ def replay_log(
     calibration: CalibrationOverride | None = None,
     mitigations: Sequence[str] = (),
     scan_corners: bool = False,
+    landmark_map: str | Path | None = None,
 ) -> ReplayResult:
     """Run a recorded trial (a log path, an opened log or an opened dataset) through a
     localizer and the mapper; write estimates, maps, metrics against ground truth (when
@@ -194,6 +196,10 @@ def replay_log(
     mapper config's; the source must hold what they need (recorded in config.json).
     scan_corners: each laser scan's corners (mapping.scan_features) also go to the
     localizer, as range-bearing sightings without IDs (counted: `scan_corners`).
+    landmark_map: a landmark map file (slam.landmarks: {"id": [x, y]}, e.g. the
+    landmarks.json of an earlier SLAM replay) for a localizer that localizes in a known
+    map (the particle filter), instead of the log's; the metrics against the log's true
+    landmarks are unchanged.
 
 
     (Its length is this docstring; the body is the four named steps.)"""
@@ -204,7 +210,7 @@ def replay_log(
         mapper_config = replace(mapper_config or MapperConfig(), hygiene=mitigated.hygiene)
     r = _build(
         log, out_dir, localizer, localizer_config, localizer_overrides, mapper_config,
-        reference_map, controller, drag_config, calibration, mitigated,
+        reference_map, controller, drag_config, calibration, mitigated, landmark_map,
     )  # fmt: skip
     if scan_corners:
         r.pipeline.scan_features = FeatureConfig()
@@ -270,7 +276,7 @@ def _out_dir(out_dir: str | Path) -> Path:
 
 def _build(
     log, out_dir, localizer, localizer_config, overrides, mapper_config, reference_map,
-    controller, drag_config, calibration_file, mitigated,
+    controller, drag_config, calibration_file, mitigated, landmark_map=None,
 ) -> _Replay:  # fmt: skip
     """The source, the calibration, the localizer's config, the localizer, the pipeline."""
     trial = log if isinstance(log, TrialLog | Dataset) else read_log(log)
@@ -287,19 +293,37 @@ def _build(
         CONTROLLERS.spec(controller)  # an unknown name fails before the replay
     world = World.from_dict(trial.metadata["world"]) if "world" in trial.metadata else None
     true_landmarks = landmarks.from_metadata(trial.metadata)
+    given = given_map(landmark_map, built.config, localizer)
     loc = create(
         localizer,
         cal,
         built.config,
         initial_pose=trial.metadata.get("config", {}).get("initial_pose"),
-        landmark_map=true_landmarks,
+        landmark_map=given if given is not None else true_landmarks,
     )
     pipeline = Pipeline(loc, cal, mapper_config, reference_map=reference_map)
     outlines = [p for _, p in world.footprint_polygons(*MAP_BAND_M)] if world is not None else []
     return _Replay(
         trial, log_path, out, localizer, built, cal, override, pipeline, world, true_landmarks,
         outlines, drag_config or DragConfig(), controller, mitigated,
+        None if landmark_map is None else str(landmark_map),
     )  # fmt: skip
+
+
+def given_map(path: str | Path | None, config: Any, localizer: str) -> dict | None:
+    """The landmark map file's map (slam.landmarks.load), checked to be of use: only a
+    localizer that localizes in a known map takes one, and a config that names its own
+    map keeps it."""
+    if path is None:
+        return None
+    if not isinstance(config, KnownMapConfig):
+        raise ConfigError(
+            f"{path}: {localizer} builds its own map; a landmark map is for a localizer "
+            "that localizes in one (particle-filter)"
+        )
+    if config.landmark_map is not None:
+        raise ConfigError(f"{path}: {localizer}'s config already names a landmark map")
+    return landmarks.load(path)
 
 
 def _attach_evaluation(r: _Replay, drag_metrics: bool, observers) -> None:
@@ -451,6 +475,10 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
         fit = M.fit_gps(est, np.array(r.trial.metadata["gps"]["rows"]))
         fig = gps_figure(est, fit, metrics, xy, localizer=r.localizer, log=r.log_path)
         files["gps_png"] = save(fig, out / "gps.png")
+    loc = pipeline.localizer
+    if isinstance(loc, LandmarkMapper) and (marks := loc.landmarks()):
+        means = {i: mean for i, (mean, _) in marks.items()}
+        files["landmarks"] = landmarks.save(out / "landmarks.json", means)
     if pipeline.hygiene is not None:
         metrics["map_hygiene"] = dict(pipeline.hygiene.counts)
     files["metrics"] = out / "metrics.json"
@@ -467,6 +495,7 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
         "localizer_overrides": r.built.overrides,
         "mitigations": r.mitigated.record(),
         "scan_corners": pipeline.scan_features is not None,
+        "landmark_map": r.landmark_map,
         "calibration_override": r.calibration_override,
         "mapper_config": _jsonable(pipeline.mapper.config),
         "controller": r.controller,

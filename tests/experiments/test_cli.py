@@ -275,3 +275,43 @@ def test_info_shows_each_topics_counts_and_the_calibration(short_log):
     assert rows["/depth/image"][1:3] == ["DepthFrame", "41"]
     assert "calibration: wheel 203.0 mm, track 0.640 m, 256 counts/rev" in res.stdout
     assert res.stdout.count("calibration") >= 2  # and in the metadata list
+
+
+def test_a_slam_replays_landmarks_are_a_map_to_localize_in(short_log, tmp_path):
+    """replay writes the landmarks a SLAM localizer made (landmarks.json); --landmark-map
+    gives such a file to the particle filter in place of the log's map; one line for a
+    localizer that makes its own map and for a file that is not a map."""
+    res = walkerslam("replay", short_log, "--localizer", "ekf-slam", "--out", tmp_path / "slam")
+    assert res.returncode == 0, res.stderr
+    made = tmp_path / "slam" / "landmarks.json"
+    tags = json.loads(made.read_text())
+    assert tags and all(int(k) >= 0 and len(v) == 2 for k, v in tags.items())
+
+    def pf(map_file, out):
+        res = walkerslam(
+            "replay", short_log, "--localizer", "particle-filter", "--landmark-map", map_file,
+            "--out", tmp_path / out,
+        )  # fmt: skip
+        assert res.returncode == 0, res.stderr
+        config = json.loads((tmp_path / out / "config.json").read_text())
+        assert config["landmark_map"] == str(map_file)
+        return json.loads((tmp_path / out / "metrics.json").read_text())["localizer_diagnostics"]
+
+    d = pf(made, "pf")
+    assert d["landmark_observations"] > 0 and d["unknown_ids"] == 0
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"999": [0.0, 0.0]}))  # none of the log's tags
+    d = pf(other, "pf-other")
+    assert d["landmark_observations"] == 0 and d["unknown_ids"] > 0
+    res = walkerslam(
+        "replay", short_log, "--localizer", "ekf-slam", "--landmark-map", made, "--out",
+        tmp_path / "o",
+    )  # fmt: skip
+    assert_one_line_error(res, "landmarks.json", "builds its own map")
+    bad = tmp_path / "bad.json"
+    bad.write_text("{")
+    res = walkerslam(
+        "replay", short_log, "--localizer", "particle-filter", "--landmark-map", bad, "--out",
+        tmp_path / "o2",
+    )  # fmt: skip
+    assert_one_line_error(res, "bad.json", "not JSON")
