@@ -8,7 +8,11 @@ measurement models weight the particles:
 - landmarks with known IDs (tags seen by the camera, range-bearing datasets) against a
   known landmark map {id: (x, y)}: Gaussian range-bearing likelihood, range σ =
   range_sigma_m + range_sigma_frac·r, bearing σ = bearing_sigma_rad (difference wrapped);
-  IDs not in the map are skipped and counted;
+  IDs not in the map are skipped and counted; a sighting without an ID (−1: a tree in
+  a laser scan, a corner) is paired by each particle with the map landmark that explains
+  it best (its own maximum-likelihood association, as FastSLAM's; `association_enabled`),
+  among the landmarks within reach of the cloud (farther ones would score below the
+  outlier floor for every particle);
 - depth frames (or laser scans) against an occupancy grid (a likelihood field, Thrun et
   al., Probabilistic Robotics §6.4): a distance transform of the grid's occupied surface
   cells gives each cell p(d) = z_hit·N(d; 0, σ_hit) + z_rand/max_range; up to max_beams of
@@ -90,6 +94,7 @@ from slam.absolute import (
     absolute_observation,
     fused_count,
 )
+from slam.association import AssociationConfig
 from slam.base import KnownMapConfig, Localizer, PoseEstimate
 from slam.grid_kernels import field_log_likelihood
 from slam.measurement import (
@@ -173,6 +178,8 @@ class ParticleSettings(KnownMapConfig):
     outlier_prob, outlier_range_m: the robust landmark likelihood (module docstring): the
         share ε of observations that are outliers, uniform over outlier_range_m of range
         and all bearings; 0 = the plain Gaussian.
+    association_enabled: sightings without an ID are paired with the map's landmarks by
+        each particle (module docstring); False: counted (`unknown_ids`) and not used.
     """
 
     initial_sigma: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -193,6 +200,7 @@ class ParticleSettings(KnownMapConfig):
     resample_threshold: float = 0.5
     outlier_prob: float = 0.01
     outlier_range_m: float = 10.0
+    association_enabled: bool = True
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.outlier_prob < 1.0 or self.outlier_range_m <= 0:
@@ -325,6 +333,7 @@ class ParticleFilter(Localizer):
         self._landmark_index = {int(k): i for i, k in enumerate(lm)}
         self._landmarks = np.array([np.asarray(v, dtype=float)[:2] for v in lm.values()])
         self._landmarks = self._landmarks.reshape(-1, 2)
+        self._gate = AssociationConfig().gate()
         self._field: _Field | None = None
         self._field_t = -math.inf  # message time the field was computed at
         self._moved = (math.inf, math.inf)  # odometry (|ds|, |dθ|) since the last scored frame
@@ -336,6 +345,7 @@ class ParticleFilter(Localizer):
             "landmark_updates": 0,
             "landmark_observations": 0,
             "unknown_ids": 0,
+            "associated": 0,
             "scan_updates": 0,
             "resamples": 0,
             "n_eff_min": float(n),
@@ -430,18 +440,22 @@ class ParticleFilter(Localizer):
             return
         known = [self._landmark_index.get(int(i)) for i in obs.ids]
         rows = [k for k, j in enumerate(known) if j is not None]
-        self.counts["unknown_ids"] += len(known) - len(rows)
-        if not rows:
+        pair = self.pf.association_enabled and len(self._landmarks) > 0
+        unknown = [k for k, i in enumerate(obs.ids) if i < 0] if pair else []
+        self.counts["unknown_ids"] += len(known) - len(rows) - len(unknown)
+        if not rows and not unknown:
             return
         self._draw_odometry_noise()
-        z = obs.z[rows]  # (M, 2)
-        lm = self._landmarks[[known[k] for k in rows]]  # (M, 2)
         c = self.pf
+        z = obs.z[rows + unknown]  # (M, 2)
         sr = c.range_sigma_m + c.range_sigma_frac * z[:, 0]  # (M,)
-        zhat = range_bearing(self.particles[:, None, :], lm[None, :, :])  # (N, M, 2)
-        dr = (z[None, :, 0] - zhat[..., 0]) / sr
-        db = wrap_angle(z[None, :, 1] - zhat[..., 1]) / c.bearing_sigma_rad
-        log_gauss = -0.5 * (dr * dr + db * db)  # (N, M), without the normaliser
+        log_gauss = np.empty((len(self.particles), len(z)))  # (N, M), without the normaliser
+        k = len(rows)
+        if rows:
+            lm = self._landmarks[[known[i] for i in rows]]  # (M, 2)
+            log_gauss[:, :k] = self._log_gauss(lm[None], z[:k], sr[:k])[:, 0]
+        if unknown:
+            log_gauss[:, k:] = self._paired(z[k:], sr[k:])
         if c.outlier_prob > 0.0:
             log_norm = -np.log(2.0 * math.pi * sr * c.bearing_sigma_rad)  # (M,)
             log_u = math.log(c.outlier_prob / (2.0 * math.pi * c.outlier_range_m))
@@ -450,7 +464,32 @@ class ParticleFilter(Localizer):
             log_lik = log_gauss
         self._update(np.sum(log_lik, axis=1), obs.t)
         self.counts["landmark_updates"] += 1
-        self.counts["landmark_observations"] += len(rows)
+        self.counts["landmark_observations"] += len(z)
+
+    def _log_gauss(self, lm: np.ndarray, z: np.ndarray, sr: np.ndarray) -> np.ndarray:
+        """−½ of the squared normalised innovations of sightings z (M, 2) (range σ sr (M,))
+        of landmarks lm (K, M or 1, 2) from every particle: (N, K, M)."""
+        zhat = range_bearing(self.particles[:, None, None, :], lm[None])  # (N, K, M, 2)
+        dr = (z[:, 0] - zhat[..., 0]) / sr
+        db = wrap_angle(z[:, 1] - zhat[..., 1]) / self.pf.bearing_sigma_rad
+        return -0.5 * (dr * dr + db * db)
+
+    def _paired(self, z: np.ndarray, sr: np.ndarray) -> np.ndarray:
+        """Sightings without an ID (M, 2): each particle's best map landmark for each,
+        as −½ its squared normalised innovation (N, M); `associated` counts the sightings
+        the heaviest particle pairs within the χ²(2) 99 % gate."""
+        mean = self._mean()[:2]
+        reach = float(np.max(np.hypot(*(self.particles[:, :2] - mean).T)))
+        dist = np.hypot(*(self._landmarks - mean).T)
+        slack = reach + 5.0 * float(sr.max())
+        near = (dist <= z[:, 0].max() + slack) & (dist >= z[:, 0].min() - slack)
+        if not near.any():
+            return np.full((len(self.particles), len(z)), -np.inf)
+        cand = self._landmarks[near][:, None, :]  # (K, 1, 2)
+        best = self._log_gauss(cand, z, sr).max(axis=1)  # (N, M)
+        heaviest = best[int(np.argmax(self.log_weights))]
+        self.counts["associated"] += int(np.count_nonzero(-2.0 * heaviest <= self._gate))
+        return best
 
     def _observe_absolute(self, obs: AbsoluteObservation) -> None:
         """Weight the particles by a compass heading's or a position fix's robust

@@ -207,6 +207,27 @@ def test_clutter_is_kept_out_of_the_map(name):
     assert len(off.landmarks()) == 0 and off.diagnostics()["without_id"] == d["without_id"]
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_particle_filter_pairs_sightings_with_its_known_map(seed):
+    """The particle filter in the true map, its sightings without IDs (and with one
+    spurious sighting per step): each particle pairs them itself, as accurate as with
+    the IDs."""
+    steps, gt = drive(seed)
+    known_map = {k: np.array(v, dtype=float) for k, v in LANDMARKS.items()}
+    runs = [
+        run("particle-filter", batched(s), landmark_map=known_map, seed=seed)
+        for s in (steps, _without_ids(steps), _with_clutter(_without_ids(steps), 1.0, seed=100))
+    ]
+    with_ids, without, cluttered = (ate(r.trajectory(), gt)["ate_rmse_m"] for r in runs)
+    assert without < 1.05 * with_ids and cluttered < 1.1 * with_ids < 0.1
+    d = runs[1].diagnostics()
+    assert d["landmark_observations"] == 3070  # every sighting of the drive used
+    assert d["associated"] > 0.93 * d["landmark_observations"] and d["unknown_ids"] == 0
+    off = run("particle-filter", batched(_without_ids(steps)), landmark_map=known_map,
+              association_enabled=False)  # fmt: skip
+    assert off.diagnostics()["unknown_ids"] == d["landmark_observations"]
+
+
 def _associate(particles, sightings, slack=0.0, settled=True):
     """fastslam_kernels.associate on particles at the origin facing +x (no motion
     covariance), each with its own landmarks [(x, y), ...] known to 1 cm, and
@@ -278,6 +299,8 @@ def test_victoria_park_first_five_minutes_against_the_gps():
             loc.process(m)
         errors[name] = gps_errors(loc.trajectory(), gps)
         trees[name] = loc.diagnostics().get("map_landmarks")
+        if name == "gtsam":
+            gtsam_trees = loc.landmarks()
     assert (
         errors["ekf-slam"]["gps_fixes_used"] > 900 and errors["ekf-slam"]["gps_jumps_left_out"] > 0
     )
@@ -285,6 +308,17 @@ def test_victoria_park_first_five_minutes_against_the_gps():
     for name in ("ekf-slam", "gtsam", "fastslam"):
         assert errors[name]["gps_rmse_m"] < 5.5, name
         assert 150 <= trees[name] <= 400, name  # trees seen, not clutter
+    # the particle filter localizes in the tree map gtsam made, pairing the sightings
+    config = configure(LOCALIZERS, "particle-filter", source.metadata).config
+    tree_map = {i: mean for i, (mean, _) in gtsam_trees.items()}
+    pf = create("particle-filter", source.calibration, config, initial_pose=source.initial_pose,
+                landmark_map=tree_map)  # fmt: skip
+    for m in messages:
+        pf.process(m)
+    assert gps_errors(pf.trajectory(), gps)["gps_rmse_m"] < errors["gtsam"]["gps_rmse_m"] + 0.5
+    # within the sensor-noise gate of a mapped tree at the heaviest particle (the others:
+    # trees gtsam did not map, clutter, and the mapped trees' own error)
+    assert pf.diagnostics()["associated"] > 0.4 * pf.diagnostics()["landmark_observations"]
 
 
 def _pose_nees(runs: int, without_ids: bool, steps: int) -> np.ndarray:

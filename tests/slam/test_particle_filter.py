@@ -126,10 +126,11 @@ def test_without_observations_it_follows_odometry_and_says_so():
 def test_unknown_landmark_ids_are_counted_not_used():
     pf = ParticleFilter(
         ParticleFilterConfig(
-            n_particles=100, initial_sigma=(0.2, 0.2, 0.1), landmark_map={7: (2, 0)}
+            n_particles=100, initial_sigma=(0.2, 0.2, 0.1), landmark_map={7: (2, 0)},
+            association_enabled=False,
         ),
         CAL,
-    )
+    )  # fmt: skip
     pf.process(EncoderTicks(0.0, 0, 0))
     before = pf.particles.copy()
     pf.process(RangeBearing(0.0, 99, 2.0, 0.0))  # not in the map
