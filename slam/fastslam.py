@@ -83,9 +83,10 @@ every landmark of a particle starts a landmark in a free column of that particle
 landmark is provisional until seen `confirm_sightings` times and is dropped (its column
 freed) when it is not within `provisional_max_age_s` — the particle's own version of
 slam.association.Provisional. `landmarks()` gives the best particle's confirmed ones,
-with IDs FIRST_ASSOCIATED_ID + column; the diagnostics' association counts
-(associated, ambiguous, provisional_dropped, map_landmarks) are averages over the
-particles, but map_landmarks is the best particle's.
+with IDs FIRST_ASSOCIATED_ID + column (beside the known IDs); the diagnostics'
+association counts (associated, new, ambiguous, provisional_dropped, provisional_pending)
+are averages over the particles, map_landmarks the size of the best particle's map (as
+`landmarks()`, and as EKF-SLAM's and gtsam's count).
 
 Resampling: systematic (as `filterpy.monte_carlo.systematic_resample`, but drawing its
 one uniform from the filter's generator so a run is reproducible from `seed`) when the
@@ -704,8 +705,7 @@ class FastSlam(Localizer):
         notes["landmarks"] = len(self.index)
         if self._associates:
             confirmed = self._confirmed()
-            best = int(np.argmax(self.log_weights))
-            notes["map_landmarks"] = int(confirmed[best].sum())  # as landmarks()
+            notes["map_landmarks"] = len(self.landmarks())  # the best particle's, as EKF-SLAM's
             for key, v in self._found.items():
                 notes[key] = round(v / self.n, 1)
             pending = self.seen & ~self.reserved & ~confirmed

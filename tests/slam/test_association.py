@@ -193,6 +193,30 @@ def test_without_ids_the_landmarks_are_found_and_tracked_as_with_them(name, seed
         assert np.min(np.hypot(*(true - mean).T)) < 0.6
 
 
+@pytest.mark.parametrize("name", ["ekf-slam", "gtsam", "fastslam"])
+def test_landmarks_with_and_without_ids_in_one_run(name):
+    """Half the landmarks keep their IDs (tags read), the others lose them (misread):
+    the known ones keep their IDs, the others are found, none twice, and the path is as
+    good as with every ID."""
+    steps, gt = drive(0)
+    mixed = [
+        [RangeBearing(m.t, -1 if m.landmark_id % 2 else m.landmark_id, m.range_m, m.bearing_rad)
+         if isinstance(m, RangeBearing) else m for m in s]
+        for s in steps
+    ]  # fmt: skip
+    loc = run(name, batched(mixed))
+    marks = loc.landmarks()
+    assert sorted(k for k in marks if k < FIRST_ASSOCIATED_ID) == [0, 2, 4, 6]
+    assert len(marks) == 8 and loc.diagnostics()["map_landmarks"] == 8
+    true = np.array(list(LANDMARKS.values()), dtype=float)
+    found = [int(np.argmin(np.hypot(*(true - mean).T))) for k, (mean, _) in marks.items()]
+    assert sorted(found) == list(range(8))  # each true landmark once
+    assert (
+        ate(loc.trajectory(), gt)["ate_rmse_m"]
+        < 1.05 * ate(run(name, batched(steps)).trajectory(), gt)["ate_rmse_m"]
+    )
+
+
 @pytest.mark.parametrize("name", ["ekf-slam", "fastslam"])
 def test_clutter_is_kept_out_of_the_map(name):
     steps, gt = drive(0)

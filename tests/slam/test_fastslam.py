@@ -447,7 +447,7 @@ def test_outlier_is_gated_and_unknown_ids_are_counted(version, associate):
     assert cov[0, 0] < 0.05**2
     assert list(fs.landmarks()) == [7]  # the sighting without an ID: at most provisional
     if associate:  # a new, provisional landmark in every particle
-        assert d["new"] == 1 and d["provisional_pending"] == 1 and d["map_landmarks"] == 0
+        assert d["new"] == 1 and d["provisional_pending"] == 1 and d["map_landmarks"] == 1
 
 
 def test_landmark_arrays_grow_and_range_bearing_needs_no_yaw_only_in_range_bearing_mode():
