@@ -28,6 +28,17 @@ landmark, and one not confirmed within `provisional_max_age_s` is dropped (clutt
 false detection, a passing person). The IDs of landmarks found this way count up from
 FIRST_ASSOCIATED_ID, so that they never collide with known ones. `Discovery` is that
 step for a localizer: new or ambiguous, provisional, confirmed with an ID.
+
+**Inflation.** EKF-SLAM's joint covariance holds the error between the pose and a map
+landmark; FastSLAM's does not (a particle's landmarks are conditioned on its one path,
+and the paths that would cover the drift since a landmark was last seen are resampled
+away: after a loop they are centimetres sure and decimetres off), nor does gtsam's (it
+pairs on the current estimate, without marginals). Their gates divide the squared
+Mahalanobis distance to a map landmark by `inflation` (4: the covariance taken twice
+as wide in σ), which scales with the sensor and the map as they are: a metric allowance
+(a metre, as first tried) served a park's trees tens of metres apart and paired a maze's
+corners a metre apart wrongly (BENCHMARKS.md, issue 14). Provisional landmarks, seen
+seconds ago, are gated as they are.
 """
 
 from __future__ import annotations
@@ -59,7 +70,8 @@ class AssociationConfig:
     or "nn"; gate_prob: the individual and joint χ² quantile; new_prob: an unpaired
     observation farther than this χ²(2) quantile from every landmark is new (else
     ambiguous, dropped); confirm_sightings / provisional_max_age_s: when a provisional
-    landmark joins the map or is dropped; max_nodes: JCBB's search budget per time."""
+    landmark joins the map or is dropped; max_nodes: JCBB's search budget per time;
+    inflation: FastSLAM's and gtsam's gates to map landmarks (module docstring)."""
 
     method: AssociationMethod = AssociationMethod.JCBB
     gate_prob: float = 0.99
@@ -67,6 +79,7 @@ class AssociationConfig:
     confirm_sightings: int = 2
     provisional_max_age_s: float = 5.0
     max_nodes: int = 20_000
+    inflation: float = 4.0
 
     def __post_init__(self) -> None:
         coerce(self, method=AssociationMethod)
@@ -74,6 +87,8 @@ class AssociationConfig:
             raise ValueError(
                 f"need 0 < gate_prob <= new_prob < 1, got {self.gate_prob}, {self.new_prob}"
             )
+        if not self.inflation >= 1.0:
+            raise ValueError(f"inflation must be >= 1, got {self.inflation}")
         if self.confirm_sightings < 1 or self.provisional_max_age_s < 0 or self.max_nodes < 1:
             raise ValueError(
                 "confirm_sightings and max_nodes must be >= 1, provisional_max_age_s >= 0"

@@ -70,14 +70,10 @@ only) are associated by each particle against its own map (slam.fastslam_kernels
 associate: maximum likelihood with mutual exclusion, the χ² gates of slam.association,
 a particle that pairs nothing weighted by the density of a new landmark at the gate), so
 that the particles carry different associations and resampling keeps the ones the
-sightings agree with (Montemerlo et al. 2003). The gates allow `association_sigma_m`
-more for a confirmed landmark (its square added to the landmark's covariance, as gtsam
-does; not for a provisional one, seen seconds ago), for the error a
-particle's own covariances do not hold: a particle's landmarks are conditioned on its
-one path, and the spread of the paths that would cover the drift since a landmark was
-last seen is resampled away, so after a loop the map's landmarks are centimetres sure
-and decimetres off (on the issue-13 drive without IDs: 13 landmarks for 8 at 0, exactly
-8 at 0.3–1 m; Victoria Park: BENCHMARKS.md). The weights and the updates use the
+sightings agree with (Montemerlo et al. 2003). The gates to a confirmed landmark are
+widened by `association.inflation` (slam.association: a particle's own covariances do
+not hold the drift since a landmark was last seen; on the issue-13 drive without IDs
+13 landmarks for 8 without it, exactly 8 with it); the weights and the updates use the
 particle's own covariances. A sighting farther than `new_prob` from
 every landmark of a particle starts a landmark in a free column of that particle; the
 landmark is provisional until seen `confirm_sightings` times and is dropped (its column
@@ -188,9 +184,9 @@ class FastSlamConfig(LocalizerConfig):
     align_observations: the observations held for the next odometry message (see above)
     are used part way through its increment, at their own time
     (slam.motion.split_increment), not at the pose of the message before them.
-    association_enabled, association, association_sigma_m: sightings without an ID, each
-    particle's own association (module docstring; slam.association.AssociationConfig:
-    its gate_prob, new_prob, confirm_sightings and provisional_max_age_s; `method` is
+    association_enabled, association: sightings without an ID, each particle's own
+    association (module docstring; slam.association.AssociationConfig: its gate_prob,
+    new_prob, confirm_sightings, provisional_max_age_s and inflation; `method` is
     EKF-SLAM's). False: they are counted and not used.
     """
 
@@ -213,7 +209,6 @@ class FastSlamConfig(LocalizerConfig):
     align_observations: bool = False
     association_enabled: bool = True
     association: AssociationConfig = field(default_factory=AssociationConfig)
-    association_sigma_m: float = 1.0
 
     def __post_init__(self) -> None:
         if self.version not in (1, 2):
@@ -552,7 +547,7 @@ class FastSlam(Localizer):
             self._grow(m)
             kernels.associate(
                 mu, sigma, self.means, self.covs, self.seen, self._confirmed() | self.reserved,
-                unknown, r_u, self.config.association_sigma_m**2, a.gate(),
+                unknown, r_u, a.inflation, a.gate(),
                 a.new_threshold(), gain, v2, logw, cols_u, status,
             )  # fmt: skip
         if not used.any() and not m:

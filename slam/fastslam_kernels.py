@@ -295,20 +295,19 @@ def update_landmarks(
 
 @njit(cache=True, nogil=True)
 def associate(
-    mu, sigma, means, covs, seen, settled, z, r, slack, gate, new_gate, gain, proposal, logw,
-    cols, status,
+    mu, sigma, means, covs, seen, settled, z, r, inflation, gate, new_gate, gain, proposal,
+    logw, cols, status,
 ) -> None:  # fmt: skip
     """Range-bearing sightings z (M, 2) without IDs, each particle its own data
     association (FastSLAM 2.0's per-particle maximum likelihood, with mutual exclusion):
 
     1. the squared Mahalanobis distance of every sighting to every landmark of the
-       particle, S = G_s Σ G_sᵀ + G_l (Σ_l + slack·I) G_lᵀ + R, Σ its proposal
-       covariance, slack the association's allowance for the landmarks `settled` (N, C)
-       (slam.fastslam; 0 for the others) — but for
-       the landmarks whose distance D from the proposal mean lies so far outside the
-       sightings' ranges that the range alone puts every sighting beyond the gate:
-       d² ≥ ν_r² / S_rr and S_rr ≤ tr Σ_xy + tr Σ_l + slack + max σ_r² (exact: most of a
-       large map skipped at the price of a distance);
+       particle, S = G_s Σ G_sᵀ + G_l Σ_l G_lᵀ + R, Σ its proposal covariance, divided
+       by `inflation` for the landmarks `settled` (N, C) (slam.association's
+       AssociationConfig.inflation) — but for the landmarks whose distance D from the
+       proposal mean lies so far outside the sightings' ranges that the range alone puts
+       every sighting beyond the gate: d² ≥ ν_r² / S_rr and S_rr ≤ tr Σ_xy + tr Σ_l +
+       max σ_r² (exact: most of a large map skipped at the price of a distance);
     2. the pairs within `gate` taken greedily, nearest first, each sighting and
        landmark at most once;
     3. each sighting in turn: a paired one folded into the proposal and the weight as a
@@ -341,7 +340,7 @@ def associate(
         var_r = max(var_r, r[o, 0])
     for i in range(n):
         nc = 0
-        spread = var_r + slack + (sigma[i, 0, 0] + sigma[i, 1, 1] if proposal else 0.0)
+        spread = var_r + (sigma[i, 0, 0] + sigma[i, 1, 1] if proposal else 0.0)
         for c in range(cap):
             if not seen[i, c]:
                 continue
@@ -349,7 +348,8 @@ def associate(
             dy = means[i, c, 1] - mu[i, 1]
             dist = math.sqrt(dx * dx + dy * dy)
             gap = max(dist - r_max, r_min - dist, 0.0)
-            if gap * gap > gate * (spread + covs[i, c, 0, 0] + covs[i, c, 1, 1]):
+            k = inflation if settled[i, c] else 1.0
+            if gap * gap > gate * k * (spread + covs[i, c, 0, 0] + covs[i, c, 1, 1]):
                 continue
             _predict(mu[i], means[i, c], d, zhat, g_s, g_l)
             _gcg(g_l, covs[i, c], lg, q)
@@ -358,9 +358,6 @@ def associate(
                 for a in range(d):
                     for b in range(d):
                         q[a, b] += s[a, b]
-            if settled[i, c]:  # G_l (slack I) G_lᵀ = slack diag(1, 1/ρ²)
-                q[0, 0] += slack
-                q[1, 1] += slack / max(dx * dx + dy * dy, 1e-12)
             for o in range(m_obs):
                 for a in range(d):
                     for b in range(d):
@@ -372,7 +369,7 @@ def associate(
                 for a in range(d):
                     for b in range(d):
                         maha += nu[a] * s_inv[a, b] * nu[b]
-                d2[o, nc] = maha
+                d2[o, nc] = maha / k
             cand[nc] = c
             taken[nc] = False
             nc += 1

@@ -8,9 +8,10 @@ after the last keyframe. Landmark observations become `BearingRangeFactor2D` fac
 their keyframe with a Huber-robust noise model (outliers lose their pull rather than
 being gated). Sightings without an ID (−1: Victoria Park's trees) are paired with the
 landmarks found so far by nearest neighbour on the current estimate (slam.association:
-the sighting placed at the current pose, with its measurement covariance plus
-`association_sigma_m`² for the pose and landmark errors; the χ² gate of
-`association.gate_prob`), and become factors like the others, robust, so that a wrong
+the sighting placed at the current pose with its measurement covariance, the squared
+Mahalanobis distance divided by `association.inflation` for the pose and landmark errors
+the estimate carries no covariance for; the χ² gate of `association.gate_prob`), and
+become factors like the others, robust, so that a wrong
 pairing can be outvoted by the right ones; a sighting that matches none is a
 provisional landmark until it is seen again (`association.confirm_sightings`).
 With `observation="tag-pose"` a tag detection's full planar pose is used:
@@ -264,9 +265,9 @@ class GtsamConfig(LocalizerConfig):
     after the last keyframe start a new one (else they attach to it).
     range_sigma_m + range_sigma_frac·r, bearing_sigma_rad: landmark measurement noise;
     huber_k: robust kernel threshold in standard deviations.
-    association_enabled, association, association_sigma_m: sightings without IDs
-    (module docstring); association.method is EKF-SLAM's (gtsam pairs by nearest
-    neighbour), its gates and provisional landmarks apply.
+    association_enabled, association: sightings without IDs (module docstring);
+    association.method is EKF-SLAM's (gtsam pairs by nearest neighbour), its gates,
+    inflation and provisional landmarks apply.
     update_per_sighting: iSAM2 updates at every landmark sighting (the estimate uses
     them at once); False: they wait for the next keyframe's update (a fast vehicle with
     a laser that sees trees in every scan: Victoria Park proposes it).
@@ -311,7 +312,6 @@ class GtsamConfig(LocalizerConfig):
     huber_k: float = 1.345
     association_enabled: bool = True
     association: AssociationConfig = field(default_factory=AssociationConfig)
-    association_sigma_m: float = 1.0
     update_per_sighting: bool = True
     use_landmarks: bool = True
     observation: ObservationModel = ObservationModel.RANGE_BEARING
@@ -712,12 +712,14 @@ class GtsamSmoother(Localizer):
         sr = c.range_sigma_m + c.range_sigma_frac * z[:, 0]
         var = np.column_stack([sr * sr, np.full(len(z), c.bearing_sigma_rad**2)])
         world, covs = placed_sightings(pose, z, var)
-        covs = covs + c.association_sigma_m**2 * np.eye(2)
-        ids, xy = self._found_near(pose, float(z[:, 0].max()) + 5.0 * c.association_sigma_m)
+        sigma_r = math.sqrt(float(var[:, 0].max()))
+        ids, xy = self._found_near(
+            pose, float(z[:, 0].max()) + 5.0 * math.sqrt(a.inflation) * sigma_r
+        )
         pairs = np.full(len(z), -1, dtype=int)
         d2_min = np.full(len(z), np.inf)
         if ids:
-            d2 = mahalanobis2(world[:, None, :] - xy[None], covs[:, None])
+            d2 = mahalanobis2(world[:, None, :] - xy[None], covs[:, None]) / a.inflation
             d2_min = d2.min(axis=1)
             pairs = nearest_neighbour(d2, a.gate())
         for i in np.flatnonzero(pairs >= 0):
