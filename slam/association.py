@@ -51,6 +51,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from hardware.choices import Choice, coerce
+from slam.kernel_math import greedy_pairs
 
 FIRST_ASSOCIATED_ID = 1_000_000
 
@@ -125,17 +126,10 @@ def nearest_neighbour(d2: np.ndarray, gate: float) -> np.ndarray:
     """Greedy nearest neighbour on the (n, m) squared Mahalanobis distances: the pairs
     within `gate` in increasing distance, each observation and landmark used once.
     Returns the landmark of each observation (−1: none)."""
-    n = d2.shape[0]
-    out = np.full(n, -1, dtype=int)
-    if d2.size == 0:
-        return out
-    rows, cols = np.nonzero(d2 <= gate)
-    used: set[int] = set()
-    for k in np.argsort(d2[rows, cols], kind="stable"):
-        i, j = int(rows[k]), int(cols[k])
-        if out[i] < 0 and j not in used:
-            out[i] = j
-            used.add(j)
+    n, m = d2.shape
+    out = np.full(n, -1, dtype=np.int64)
+    if d2.size:
+        greedy_pairs(np.asarray(d2, dtype=float), float(gate), out, np.empty(m, dtype=bool))
     return out
 
 

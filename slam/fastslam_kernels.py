@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from slam.kernel_math import inverse, wrap
+from slam.kernel_math import greedy_pairs, inverse, wrap
 
 LOG_TWO_PI = math.log(2.0 * math.pi)
 
@@ -331,6 +331,7 @@ def associate(
     point = np.empty(d)
     cand = np.empty(cap, np.int64)
     taken = np.empty(cap, np.bool_)
+    pick = np.empty(m_obs, np.int64)
     d2 = np.empty((m_obs, cap))
     d2_min = np.empty(m_obs)
     r_min, r_max, var_r = np.inf, 0.0, 0.0
@@ -371,25 +372,13 @@ def associate(
                         maha += nu[a] * s_inv[a, b] * nu[b]
                 d2[o, nc] = maha / k
             cand[nc] = c
-            taken[nc] = False
             nc += 1
+        greedy_pairs(d2[:, :nc], gate, pick, taken[:nc])
         for o in range(m_obs):
-            cols[o, i] = -1
+            cols[o, i] = cand[pick[o]] if pick[o] >= 0 else -1
             d2_min[o] = np.inf
             for kk in range(nc):
                 d2_min[o] = min(d2_min[o], d2[o, kk])
-        for _ in range(min(m_obs, nc)):  # greedy: the nearest free pair within the gate
-            best, bo, bk = gate, -1, -1
-            for o in range(m_obs):
-                if cols[o, i] >= 0:
-                    continue
-                for kk in range(nc):
-                    if not taken[kk] and d2[o, kk] <= best:
-                        best, bo, bk = d2[o, kk], o, kk
-            if bo < 0:
-                break
-            cols[bo, i] = cand[bk]
-            taken[bk] = True
         for o in range(m_obs):
             c = cols[o, i]
             if c >= 0:

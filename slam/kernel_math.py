@@ -1,10 +1,11 @@
-"""Small compiled (numba) helpers the filters' kernels share: an angle wrapped to (−π, π]
-and the inverse of a 2×2 or 3×3 matrix."""
+"""Small compiled (numba) helpers the filters' kernels share: an angle wrapped to (−π, π],
+the inverse of a 2×2 or 3×3 matrix, and greedy nearest-neighbour pairing."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 
 TWO_PI = 2.0 * math.pi
@@ -40,3 +41,28 @@ def inverse(a, d, out) -> float:
     out[1, 2] = (a[0, 2] * a[1, 0] - a[0, 0] * a[1, 2]) / det
     out[2, 2] = (a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]) / det
     return det
+
+
+@njit(cache=True, nogil=True)
+def greedy_pairs(d2, gate, out, taken) -> None:
+    """Greedy nearest neighbour on squared distances d2 (n, m): repeatedly the smallest
+    entry within `gate` whose row and column are both still free (the first in row-major
+    order among equal ones), so each row and column is paired at most once. Writes each
+    row's column to out (n,) (−1: none); taken (m,) is scratch. The same pairs as taking
+    the entries within the gate in a stable sort of their distances (slam.association.
+    nearest_neighbour)."""
+    n, m = d2.shape
+    out[:] = -1
+    taken[:] = False
+    for _ in range(min(n, m)):
+        best, bi, bj = np.inf, -1, -1
+        for i in range(n):
+            if out[i] >= 0:
+                continue
+            for j in range(m):
+                if not taken[j] and d2[i, j] < best:
+                    best, bi, bj = d2[i, j], i, j
+        if bi < 0 or not best <= gate:
+            return
+        out[bi] = bj
+        taken[bj] = True

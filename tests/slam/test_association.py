@@ -106,6 +106,22 @@ def test_a_row_of_landmarks_through_a_heading_error_nn_shifts_jcbb_does_not():
     assert not res.exhausted
 
 
+def test_nearest_neighbour_takes_the_gated_pairs_in_sorted_order():
+    """The compiled greedy pairing against the rule written out: the pairs within the
+    gate in a stable sort of their distances, each row and column once (ties included:
+    distances rounded to a few values)."""
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        n, m = rng.integers(0, 6, size=2)
+        d2 = np.round(rng.uniform(0.0, 15.0, size=(n, m)), 0)
+        want = np.full(n, -1)
+        rows, cols = np.nonzero(d2 <= 9.0)
+        for k in np.argsort(d2[rows, cols], kind="stable"):
+            if want[rows[k]] < 0 and cols[k] not in want:
+                want[rows[k]] = cols[k]
+        assert nearest_neighbour(d2, 9.0).tolist() == want.tolist()
+
+
 def test_clutter_beside_a_landmark_whose_own_sighting_was_missed():
     scene = HeadingScene([0.0, 0.3, 0.6])
     # landmarks 0 and 2 seen (heading error 0.05), landmark 1 missed; a false return
