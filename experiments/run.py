@@ -466,19 +466,19 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
         files.update(
             write_figures(out, pipeline, est, gt, r.outlines, localizer=r.localizer, log=r.log_path)
         )
+    loc = pipeline.localizer
+    marks: dict[int, np.ndarray] = {}  # the landmarks it made: for gps.png, landmarks.json
+    if isinstance(loc, LandmarkMapper):
+        marks = {i: mean for i, (mean, _) in loc.landmarks().items()}
     if figures and "gps" in r.trial.metadata and len(est) > 1:
         from experiments.report import gps_figure, save
 
-        loc = pipeline.localizer
-        marks = loc.landmarks() if isinstance(loc, LandmarkMapper) else {}
-        xy = np.array([mean for mean, _ in marks.values()]).reshape(-1, 2)
+        xy = np.array(list(marks.values())).reshape(-1, 2)
         fit = M.fit_gps(est, np.array(r.trial.metadata["gps"]["rows"]))
         fig = gps_figure(est, fit, metrics, xy, localizer=r.localizer, log=r.log_path)
         files["gps_png"] = save(fig, out / "gps.png")
-    loc = pipeline.localizer
-    if isinstance(loc, LandmarkMapper) and (marks := loc.landmarks()):
-        means = {i: mean for i, (mean, _) in marks.items()}
-        files["landmarks"] = landmarks.save(out / "landmarks.json", means)
+    if marks:
+        files["landmarks"] = landmarks.save(out / "landmarks.json", marks)
     if pipeline.hygiene is not None:
         metrics["map_hygiene"] = dict(pipeline.hygiene.counts)
     files["metrics"] = out / "metrics.json"
