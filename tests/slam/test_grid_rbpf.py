@@ -6,6 +6,7 @@ reads ../shared/data/intel_lab and skips when it is absent."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from experiments.metrics import relation_errors
 from experiments.pipeline import Pipeline
 from hardware.calibration import WalkerCalibration
 from hardware.geometry import between
+from hardware.messages import VelocityOdometry
 from mapping.grid import HitCentroidGrid, OccupancyGrid
 from mapping.scan_points import scan_to_observation
 from slam.base import LOCALIZERS, create
@@ -168,6 +170,21 @@ def test_same_seed_same_path():
     a, _ = _run(msgs, RBPF, start)
     b, _ = _run(msgs, RBPF, start)
     np.testing.assert_array_equal(a.trajectory().poses, b.trajectory().poses)
+
+
+def test_threads_give_the_same_path():
+    # the proposals spread over threads: the same draws, maps and turned starts
+    msgs, truth = loop_messages(laps=1)
+    # turns over-reported by a fifth: beyond the climb's reach, a turned start wins
+    msgs = [replace(m, omega=1.2 * m.omega) if isinstance(m, VelocityOdometry) else m for m in msgs]
+    start = tuple(truth.poses[0])
+    cfg = replace(RBPF, match=GridMatch(step_rad=0.01))  # turned starts at most frames
+    runs = [_run(msgs, replace(cfg, threads=n), start)[0] for n in (1, 2, 3)]
+    d = runs[0].diagnostics()
+    assert d["turn_starts"] > 10 and d["turn_wins"] > 0
+    for other in runs[1:]:
+        np.testing.assert_array_equal(other.trajectory().poses, runs[0].trajectory().poses)
+        assert other.diagnostics() == d
 
 
 def test_resampled_particles_share_a_map_until_they_write_it():
