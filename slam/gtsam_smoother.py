@@ -76,7 +76,7 @@ smoother spreads a scan-matching correction over the intermediate keyframes foll
 odometry factors' covariance. `odometry_cov`: "model" uses the odometry model's
 (slam.motion); "distance" a random walk in path length L and turn R since the keyframe,
 var(x) = var(y) = k₁L + k₂R, var(θ) = k₃L + k₄R (`odometry_walk`, defaults 0.0025 m²/m:
-σ 5 cm per metre, the thesis's encoder error; 0.001 m²/rad; 0.006 rad²/m; 0.01
+σ 5 cm per metre, the thesis's encoder error; 0.001 m²/rad; 0.006 rad²/m; 0.1
 rad²/rad), which does not depend on the message rate or timing; "auto" (default):
 "distance" with scan matching, "model" without. With `odometry_adaptive` the
 smoother then fits the odometry's scale to the data (covariance matching): the
@@ -84,7 +84,14 @@ odometry's error against each accepted sequential scan match, normalised per axi
 that variance, averages to the variance multiplier (σ multipliers clipped to
 `odometry_adaptive_range`, reported as `odometry_sigma_scale`); from the
 `odometry_adaptive_min_matches`-th match on it applies to new odometry factors, and the
-factors added before are replaced once with the scaled ones.
+factors added before are replaced once with the scaled ones. The adaptation scales
+each axis as a whole, so what the defaults set is how the heading's variance divides
+between path and turn: the laser logs' odometry errs in turns (its heading error
+against GMapping's poses fits 0.003–0.04 rad² per rad turned and ~0 per metre), and
+k₄ 0.1 (was 0.01) was chosen on the acapulco, edmonton, fhw and csail logs over three
+voxel sizes each (`benchmarks/bench_laser_logs.py --spread`; BENCHMARKS.md): better
+beyond the spread on acapulco and edmonton, the same on fhw and csail, and on the logs
+not used to choose it better on belgioioso and freiburg-101, the same on seattle.
 
 Slip estimation (`slip.estimate`, slam.slip): each keyframe also has the wheels' slip
 coefficients k = (k_left, k_right) as a Point2 S(i), with a prior on S(0) and a random
@@ -323,7 +330,7 @@ class GtsamConfig(LocalizerConfig):
     # drift) makes iSAM2's Cholesky factorization fail as indeterminate; QR does not.
     factorization: Factorization = Factorization.QR
     odometry_cov: OdometryCovariance = OdometryCovariance.AUTO
-    odometry_walk: tuple[float, float, float, float] = (0.0025, 0.001, 0.006, 0.01)
+    odometry_walk: tuple[float, float, float, float] = (0.0025, 0.001, 0.006, 0.1)
     # -- scan matching (see the module docstring) ------------------------------------
     scan_matching: bool = False
     scan_match: ScanMatchConfig = field(default_factory=ScanMatchConfig)

@@ -1,0 +1,158 @@
+"""gtsam with scan matching on every GMapping-corrected laser log, with its spread.
+
+Each log in ../shared/data/carmen_corrected_logs is replayed the way `walkerslam replay
+--format carmen LOG --localizer gtsam` replays it (the settings the importer proposes,
+then the --set given here), and its ATE after SE(2) alignment against GMapping's
+corrected poses is printed with the run's real-time factor.
+
+With --spread the same log is also replayed with the scan matcher's voxel size a tenth
+smaller and larger (`gtsam.scan_match.voxel_m` 0.045 and 0.055 m instead of 0.05): a
+change that should not matter, which shows how far a log's ATE moves for no reason.
+On these logs it moves far (acapulco 0.20 / 0.29 / 0.34 m, edmonton 0.47 / 0.82 m on
+2026-12-02, before odometry_walk's k₄ became 0.1), so a change to the back end is an
+improvement only when it beats that spread on most logs, not when it wins one run
+(BENCHMARKS.md, "Laser logs: a log's spread").
+
+With --odometry it replays nothing and instead fits each log's odometry noise against
+GMapping's poses: between consecutive scans, the heading error of the integrated
+odometry e_θ² ≈ k₃·L + k₄·R (L the path length [m], R the turn [rad] the odometry
+measured), by non-negative least squares, with the same for the position error per
+axis (k₁, k₂); intervals with an odometry gap are left out. GMapping's poses are not
+truth, but their errors are centimetres where these are decimetres and degrees.
+
+target (issue 13): ATE <= 0.15 m on every log.
+
+Usage: .venv/bin/python benchmarks/bench_laser_logs.py [--spread | --odometry]
+           [--logs a,b] [--jobs N] [--set gtsam.FIELD=VALUE ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import nnls
+
+REPO = Path(__file__).resolve().parents[1]
+LOGS = REPO.parent / "shared" / "data" / "carmen_corrected_logs"
+VOXELS = (0.045, 0.055)  # around ScanMatchConfig.voxel_m (0.05)
+TARGET_M = 0.15
+
+
+def run(log: str, sets: tuple[str, ...], voxel: float | None) -> tuple[str, float | None, float]:
+    """(log, ATE [m], real-time factor) of one replay."""
+    sys.path.insert(0, str(REPO))
+    from experiments.config import parse_sets
+    from experiments.run import replay_log
+    from hardware.datasets import open_dataset
+    from slam.base import LOCALIZERS
+
+    texts = list(sets) + ([f"gtsam.scan_match.voxel_m={voxel}"] if voxel is not None else [])
+    overrides = parse_sets(texts, {"gtsam": LOCALIZERS}).get("gtsam", {})
+    source = open_dataset("carmen", LOGS / f"{log}-corrected.log.gz")
+    with tempfile.TemporaryDirectory() as tmp:
+        result = replay_log(
+            source, tmp, localizer="gtsam", localizer_overrides=overrides, figures=False,
+            reference_map=False, drag_metrics=False,
+        )  # fmt: skip
+    m = result.metrics
+    return log, m.get("ate_rmse_m"), m["realtime_factor"]
+
+
+def odometry_fit(log: str) -> tuple[str, int, np.ndarray, np.ndarray]:
+    """(log, intervals, (k₁, k₂), (k₃, k₄)) of the module docstring's fit."""
+    sys.path.insert(0, str(REPO))
+    from hardware.datasets import open_dataset
+    from hardware.geometry import between, wrap_angle
+    from hardware.messages import GroundTruthPose, VelocityOdometry
+    from slam.motion import apply_increment
+
+    rows = []
+    odo = None  # (t, v, ω) in force
+    pose = walked = turned = truth = None
+    t = 0.0
+    for msg in open_dataset("carmen", LOGS / f"{log}-corrected.log.gz").messages():
+        if isinstance(msg, VelocityOdometry | GroundTruthPose) and pose is not None:
+            dt = msg.t - t
+            if odo is not None and dt > 0:
+                v, w = odo
+                if math.isnan(v) or math.isnan(w):
+                    pose = None  # a gap: this interval says nothing
+                else:
+                    pose = apply_increment(pose, v * dt, w * dt)
+                    walked, turned = walked + abs(v) * dt, turned + abs(w) * dt
+            t = msg.t
+        if isinstance(msg, VelocityOdometry):
+            odo = (msg.v, msg.omega)
+        elif isinstance(msg, GroundTruthPose):
+            here = np.array([msg.x, msg.y, msg.theta])
+            if pose is not None and truth is not None:
+                e = between(between(truth, here), between(truth, pose))
+                rows.append((walked, turned, 0.5 * (e[0] ** 2 + e[1] ** 2), wrap_angle(e[2]) ** 2))
+            truth, pose, walked, turned, t = here, here.copy(), 0.0, 0.0, msg.t
+    a = np.array(rows).reshape(-1, 4)
+    kxy = nnls(a[:, :2], a[:, 2])[0] if len(a) else np.full(2, np.nan)
+    kth = nnls(a[:, :2], a[:, 3])[0] if len(a) else np.full(2, np.nan)
+    return log, len(a), kxy, kth
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--spread", action="store_true", help="also at voxel sizes 0.045, 0.055 m")
+    ap.add_argument("--odometry", action="store_true", help="fit the odometry's noise instead")
+    ap.add_argument("--logs", help="comma-separated log names (default: all)")
+    ap.add_argument("--jobs", type=int, default=1, help="replays at a time (default 1)")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="gtsam.F=V")
+    args = ap.parse_args()
+    if not LOGS.is_dir():
+        print(f"laser logs: {LOGS} not found, skipped")
+        return 0
+    names = args.logs.split(",") if args.logs else sorted(
+        p.name.removesuffix("-corrected.log.gz") for p in LOGS.glob("*-corrected.log.gz")
+    )  # fmt: skip
+    if args.odometry:
+        with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            fits = list(pool.map(odometry_fit, names))
+        print("odometry noise against GMapping's poses, per scan interval (NNLS):")
+        print(f"{'log':18s} {'intervals':>9s}  k1 [m²/m]  k2 [m²/rad]  k3 [rad²/m]  k4 [rad²/rad]")
+        for log, n, kxy, kth in fits:
+            print(
+                f"{log:18s} {n:9d}  {kxy[0]:9.5f}  {kxy[1]:11.5f}  {kth[0]:11.5f}  {kth[1]:13.5f}"
+            )
+        return 0
+    voxels = [None, *VOXELS] if args.spread else [None]
+    jobs = [(n, tuple(args.sets), v) for n in names for v in voxels]
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        results = list(pool.map(run, *zip(*jobs, strict=True)))
+    by_log: dict[str, list[tuple[float | None, float]]] = {}
+    for log, ate, x in results:
+        by_log.setdefault(log, []).append((ate, x))
+    settings = " ".join(args.sets)
+    print(f"gtsam on {len(names)} corrected laser logs {settings}".rstrip())
+    head = "ATE at 0.05 / 0.045 / 0.055 m voxels" if args.spread else "ATE"
+    print(f"{'log':18s} {head:>40s}  {'x RT':>6s}")
+    met = 0
+    for log in names:
+        ates = [a for a, _ in by_log[log]]
+        text = " / ".join("-" if a is None else f"{a:.3f}" for a in ates)
+        ok = ates[0] is not None and ates[0] <= TARGET_M
+        met += ok
+        print(f"{log:18s} {text:>40s}  {by_log[log][0][1]:6.1f}{'' if ok else '  (> 0.15)'}")
+    firsts = [by_log[n][0][0] for n in names if by_log[n][0][0] is not None]
+    print(
+        f"target ATE <= {TARGET_M} m: {met} of {len(names)} logs; median ATE "
+        f"{statistics.median(firsts):.3f} m; {time.perf_counter() - t0:.0f} s"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
