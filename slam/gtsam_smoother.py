@@ -91,7 +91,10 @@ against GMapping's poses fits 0.003–0.04 rad² per rad turned and ~0 per metre
 k₄ 0.1 (was 0.01) was chosen on the acapulco, edmonton, fhw and csail logs over three
 voxel sizes each (`benchmarks/bench_laser_logs.py --spread`; BENCHMARKS.md): better
 beyond the spread on acapulco and edmonton, the same on fhw and csail, and on the logs
-not used to choose it better on belgioioso and freiburg-101, the same on seattle.
+not used to choose it better on belgioioso and freiburg-101, the same on seattle. On
+the walker's depth frames it is worse (scan correction without tags 2.70 → 2.56 m with
+the other defaults, but 0.97 → 2.06 m with the old submap and ICP settings; there the
+sequential matches, not the odometry, are what errs: BENCHMARKS.md).
 
 Slip estimation (`slip.estimate`, slam.slip): each keyframe also has the wheels' slip
 coefficients k = (k_left, k_right) as a Point2 S(i), with a prior on S(0) and a random
