@@ -92,8 +92,8 @@ k₄ 0.1 (was 0.01) was chosen on the acapulco, edmonton, fhw and csail logs ove
 voxel sizes each (`benchmarks/bench_laser_logs.py --spread`; BENCHMARKS.md): better
 beyond the spread on acapulco and edmonton, the same on fhw and csail, and on the logs
 not used to choose it better on belgioioso and freiburg-101, the same on seattle. On
-the walker's depth frames it is worse (scan correction without tags 2.70 → 2.56 m with
-the other defaults, but 0.97 → 2.06 m with the old submap and ICP settings; there the
+the walker's depth frames it is no help (scan correction without tags 2.70 → 2.56 m
+with the other defaults, 0.97 → 2.06 m with the old submap and ICP settings; there the
 sequential matches, not the odometry, are what errs: BENCHMARKS.md).
 
 Slip estimation (`slip.estimate`, slam.slip): each keyframe also has the wheels' slip
