@@ -34,7 +34,10 @@ robust at `absolute.robust_k` σ when that is > 0.
 Scan matching (`scan_matching=True`, off by default). Laser scans (`LaserScan`, with
 the laser's mount `laser_offset` on the walker) and depth frames (`DepthFrame`: the
 obstacle band flattened to the floor, `mapping.depth_points`) become 2-D point sets in
-the walker frame (`slam.scan_matching`). A scan is kept when the walker has moved
+the walker frame (`slam.scan_matching`), matched with `scan_match` (laser) or
+`depth_match` (depth frames: 2 cm points paired within 5 cm, where a laser's 30 cm
+pairing pulls a depth frame's match onto the nearest other surface by several cm and
+degrees; BENCHMARKS.md). A scan is kept when the walker has moved
 `scan.keyframe_distance_m` or turned `scan.keyframe_angle_rad` (odometry) since the
 last kept scan, or when the odometry since then has a gap (a motion it did not measure:
 `slam.motion.Increment.unknown`); a keyframe then starts at the scan's own time, so each
@@ -294,7 +297,8 @@ class GtsamConfig(LocalizerConfig):
     factorization: iSAM2's, "QR" or "CHOLESKY".
     odometry_cov, odometry_walk, odometry_adaptive*: see the module docstring.
     Scan matching (module docstring): scan_matching switches it on; scan_match: the
-    matcher's settings (slam.scan_matching.ScanMatchConfig); laser_offset: the laser's
+    matcher's settings for laser scans (slam.scan_matching.ScanMatchConfig), depth_match
+    for depth frames (module docstring: finer points, pairs within 5 cm); laser_offset: the laser's
     (x, y, yaw) on the walker (the CARMEN logs' front laser sits at the robot centre:
     Intel's robot_frontlaser_offset is 0); scan (SequentialScans): which scans are kept
     and how each is matched to the ones before it; loop (LoopClosures): loop closures;
@@ -337,6 +341,9 @@ class GtsamConfig(LocalizerConfig):
     # -- scan matching (see the module docstring) ------------------------------------
     scan_matching: bool = False
     scan_match: ScanMatchConfig = field(default_factory=ScanMatchConfig)
+    depth_match: ScanMatchConfig = field(
+        default_factory=lambda: ScanMatchConfig(voxel_m=0.02, max_correspondence_m=0.05)
+    )
     laser_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
     scan: SequentialScans = field(default_factory=lambda: SequentialScans())
     odometry_adaptive: bool = True
@@ -464,6 +471,7 @@ class GtsamSmoother(Localizer):
         self._delta_jk = np.zeros((3, 2))
         self._held: list[LandmarkObservation] = []  # align_observations: not yet placed
         self.sightings = Sightings(calibration)
+        self._matcher = config.scan_match  # depth_match once a depth frame is kept
         if config.scan_matching:
             self.counts.update(
                 scans_kept=0,
@@ -782,8 +790,12 @@ class GtsamSmoother(Localizer):
 
     # -- scan matching ----------------------------------------------------------------
     def _scan_points(self, msg: LaserScan | DepthFrame) -> Scan:
+        """The frame's points, thinned by its sensor's matcher settings (which the first
+        kept frame's sensor chooses for the run)."""
         c = self.config
-        voxel = c.scan_match.voxel_m
+        if not self._scans:
+            self._matcher = c.scan_match if isinstance(msg, LaserScan) else c.depth_match
+        voxel = self._matcher.voxel_m
         if isinstance(msg, LaserScan):
             return laser_points(msg, c.laser_offset, c.scan.max_range_m, c.scan.min_range_m, voxel)
         return depth_points(msg, self.calibration, voxel_m=voxel, min_range_m=c.scan.min_range_m)
@@ -800,7 +812,7 @@ class GtsamSmoother(Localizer):
             return
         t0 = time.perf_counter()
         pts = self._scan_points(msg)
-        if len(pts) < c.scan_match.min_points:
+        if len(pts) < self._matcher.min_points:
             self.counts["scan_matching_s"] += time.perf_counter() - t0
             return
         if np.any(self._delta != 0):
@@ -829,7 +841,7 @@ class GtsamSmoother(Localizer):
     def _submap(self, poses: np.ndarray, indices: range, frame_kf: int) -> Reference:
         scans = [self._scans[i] for i in indices]
         placed = place(poses[[s.kf for s in scans]], [s.scan for s in scans], poses[frame_kf])
-        return Reference(placed, self.config.scan_match)
+        return Reference(placed, self._matcher)
 
     def _add_match(self, a: int, b: int, res: MatchResult, robust: str, k: float) -> None:
         cov = _body_covariance(res.covariance, res.pose[2])
@@ -852,7 +864,7 @@ class GtsamSmoother(Localizer):
         if gap:
             wxy, wth = c.scan.gate.unknown_window
         guess = relative_guess(poses[prev.kf], poses[cur.kf])
-        res = match(ref, cur.scan, guess, wxy, wth, c.scan_match)
+        res = match(ref, cur.scan, guess, wxy, wth, self._matcher)
         if res.accepted(
             c.scan.gate.min_inlier_fraction,
             c.scan.gate.max_conflict_fraction,
@@ -862,7 +874,7 @@ class GtsamSmoother(Localizer):
             self.counts["scan_factors"] += 1
             self._flush()
             adapt = c.odometry_adaptive and not gap  # (a gap's odometry says nothing)
-            if adapt and res.constraint >= c.scan_match.degenerate_constraint:
+            if adapt and res.constraint >= self._matcher.degenerate_constraint:
                 self._adapt_odometry(odo, model, res)
         else:
             self.counts["scan_rejected"] += 1
@@ -935,7 +947,7 @@ class GtsamSmoother(Localizer):
         """Match the newest scan against kept scan i's submap, searched within ±
         window_sigmas of their relative uncertainty; add the factor if the gate accepts
         it (and the chi-squared gate, when on, finds it consistent)."""
-        c, loop = self.config, self.config.loop
+        loop = self.config.loop
         n = len(self._scans)
         cand, cur = self._scans[i], self._scans[-1]
         guess = relative_guess(poses[cand.kf], here)
@@ -949,7 +961,7 @@ class GtsamSmoother(Localizer):
         lo = max(0, i - loop.submap_half)
         hi = min(n - loop.min_separation, i + loop.submap_half + 1)
         ref = self._submap(poses, range(lo, hi), cand.kf)
-        res = match(ref, cur.scan, guess, wxy, wth, c.scan_match)
+        res = match(ref, cur.scan, guess, wxy, wth, self._matcher)
         self.counts["loop_candidates"] += 1
         g = loop.gate
         ok = res.accepted(g.min_inlier_fraction, g.max_conflict_fraction, g.max_ambiguity)
