@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import cv2
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
@@ -129,10 +130,11 @@ def bounds(
     outlines: Sequence[np.ndarray] = (),
     pad: float = PAD_M,
 ) -> tuple[float, float, float, float]:
-    """(xmin, xmax, ymin, ymax) holding the rasters, the paths and the outlines, padded."""
+    """(xmin, xmax, ymin, ymax) holding the paths, the outlines and the bulk of each
+    raster (`bulk_extent`), padded."""
     lo, hi = [], []
     for r in rasters:
-        x0, x1, y0, y1 = r.extent
+        x0, x1, y0, y1 = bulk_extent(r)
         lo.append((x0, y0))
         hi.append((x1, y1))
     for xy in [p for p in paths if p is not None and len(p)] + list(outlines):
@@ -143,6 +145,39 @@ def bounds(
         return -1.0, 1.0, -1.0, 1.0
     (x0, y0), (x1, y1) = np.min(lo, axis=0), np.max(hi, axis=0)
     return x0 - pad, x1 + pad, y0 - pad, y1 + pad
+
+
+# a map's view is set by its occupied cells with at least STRUCTURE_CELLS occupied cells
+# (themselves included) in the 5×5 cells around them: walls and furniture, not a laser's
+# stray long-range returns (seattle has a few hundred single cells up to 130 m from a
+# 50 m building, which would shrink the map to a patch in the middle)
+STRUCTURE_CELLS = 4
+
+
+def bulk_extent(raster: MapRaster) -> tuple[float, float, float, float]:
+    """(xmin, xmax, ymin, ymax) of the raster's structure (above), or of all its known
+    cells when it has none."""
+    occupied = (raster.trinary == 1).astype(np.float32)
+    near = cv2.boxFilter(occupied, -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    rows, cols = np.nonzero((occupied > 0) & (near >= STRUCTURE_CELLS - 0.5))
+    if not len(rows):
+        return raster.extent
+    (x0, y0), res = raster.origin, raster.resolution
+    return (
+        x0 + cols.min() * res,
+        x0 + (cols.max() + 1) * res,
+        y0 + rows.min() * res,
+        y0 + (rows.max() + 1) * res,
+    )
+
+
+def outside_note(raster: MapRaster, box: tuple[float, float, float, float]) -> str:
+    """', N occupied cells outside the view' for the cells `box` leaves out, else ''."""
+    rows, cols = np.nonzero(raster.trinary == 1)
+    x = raster.origin[0] + (cols + 0.5) * raster.resolution
+    y = raster.origin[1] + (rows + 0.5) * raster.resolution
+    n = int(np.count_nonzero((x < box[0]) | (x > box[1]) | (y < box[2]) | (y > box[3])))
+    return f", {n} occupied cells outside the view" if n else ""
 
 
 def _figsize(
@@ -189,7 +224,7 @@ def map_figure(
     metric_axes(ax)
     ax.set_title(
         f"{log_name(log)}: occupancy map from the {localizer} poses "
-        f"({raster.resolution * 100:g} cm cells)",
+        f"({raster.resolution * 100:g} cm cells{outside_note(raster, box)})",
         fontsize=9,
     )
     legend_right(ax, handles)
@@ -222,8 +257,8 @@ def maps_figure(
     draw_path(right, estimated, ESTIMATE_COLOUR)
     left.set_xlim(box[0], box[1])
     left.set_ylim(box[2], box[3])
-    left.set_title("map from the true poses", fontsize=9)
-    right.set_title(f"map from the {localizer} poses", fontsize=9)
+    left.set_title(f"map from the true poses{outside_note(rasters[0], box)}", fontsize=9)
+    right.set_title(f"map from the {localizer} poses{outside_note(rasters[1], box)}", fontsize=9)
     fig.suptitle(f"{log_name(log)}: the same frames mapped at two sets of poses", fontsize=10)
     handles = [
         *map_legend_handles(),

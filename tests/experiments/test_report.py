@@ -143,6 +143,28 @@ def test_map_figure_draws_the_cells_of_map_pgm(maps, tmp_path):
     assert legend_texts(ax.get_legend()) == MAP_LEGEND
 
 
+def test_map_figure_shows_the_building_not_stray_long_range_returns():
+    """A laser's stray returns far outside the building (single occupied cells) do not
+    set the view, which holds the walls; the title counts the cells left out."""
+    mapper = room_scan_map()
+    a = np.linspace(-math.pi, math.pi, 720, endpoint=False)
+    ranges = np.full(720, np.inf)
+    ranges[[10, 200, 400, 650]] = [24.0, 27.0, 25.5, 22.0]  # through the walls (a window)
+    mapper.integrate_scan(
+        LaserScan(0.0, float(a[0]), float(a[1] - a[0]), ranges, 30.0), np.zeros(3)
+    )
+    grid = mapper.grid
+    assert map_raster(grid).extent[1] > 20.0  # the map itself keeps them
+    fig = map_figure(grid, localizer="gtsam", log="seattle.log")
+    (ax,) = fig.axes
+    xmin, xmax = ax.get_xlim()
+    ymin, ymax = ax.get_ylim()
+    # the room's walls (x −1.525…2.525, y −1.025…2.025) with the figure's 0.3 m margin
+    assert (xmin, xmax) == pytest.approx((-1.55 - 0.3, 2.55 + 0.3), abs=0.06)
+    assert (ymin, ymax) == pytest.approx((-1.05 - 0.3, 2.05 + 0.3), abs=0.06)
+    assert "4 occupied cells outside the view" in ax.get_title()
+
+
 # -- maps_side_by_side.png -----------------------------------------------------------------
 
 
