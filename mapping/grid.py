@@ -36,6 +36,7 @@ itself, on nearly every frame.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from functools import lru_cache
@@ -47,12 +48,14 @@ from hardware.geometry import wrap_angle
 from mapping.kernels import (
     accumulate_hits,
     floor_bounds,
+    integrate_log_odds,
     mark_cells,
     mark_end_rays,
+    place_frame,
     update_log_odds,
 )
 from mapping.lattice import as_points, cell_centres, cells_of
-from mapping.observation import ViewWedge, WorldObservation
+from mapping.observation import PlanarObservation, ViewWedge, WorldObservation, as_pose
 
 
 class MapModel(StrEnum):
@@ -220,17 +223,42 @@ class GridExtent(ABC):
             box = box.union(_Box(*floor_bounds(obs.obstacles, obs.ray_ends, res)))
         for extra in self._extra_cells(obs):
             box = box.union(extra)
-        if not (self.shape[0] and self._box().contains(box)):  # most frames fit as is
-            centre = obs.sensor_xy if centre_xy is None else np.asarray(centre_xy, dtype=float)
-            self._ensure(np.array(box.lo), np.array(box.hi), cells_of(centre[None], res)[0])
         # The part of the frame's box that the grid holds (all of it unless it rolled).
-        grid_box = self._box()
-        window = box.intersection(grid_box)
+        window = self._fit(box, obs.sensor_xy if centre_xy is None else centre_xy)
         if window is None:
             return
         frame = _Frame(self, obs, box, window)
-        rows, cols = window.slices(grid_box)
+        rows, cols = window.slices(self._box())
         self._update({k: v[rows, cols] for k, v in self._layers.items()}, frame)
+
+    def integrate_at(
+        self, obs: PlanarObservation, pose: np.ndarray, centre_xy: np.ndarray | None = None
+    ) -> None:
+        """Add one walker-frame frame placed at the walker's `pose`: the same as
+        `integrate(obs.in_world(pose), centre_xy)` (the log-odds models do it in one
+        compiled call, mapping.kernels.integrate_log_odds, to the same cells and values)."""
+        update = self.update_at(obs, pose, centre_xy)
+        if update is not None:
+            update()
+
+    def update_at(
+        self, obs: PlanarObservation, pose: np.ndarray, centre_xy: np.ndarray | None = None
+    ) -> Callable[[], None] | None:
+        """`integrate_at` in two steps: the grid grows (or rolls) for the frame now, and
+        the returned call adds it (None: nothing to add). For the log-odds models that
+        call is compiled code that releases the GIL, so the frames of several grids can
+        be added on threads while the grids' memory is only ever allocated by the
+        caller's thread."""
+        world = obs.in_world(pose)
+        return lambda: self.integrate(world, centre_xy)
+
+    def _fit(self, box: _Box, centre_xy: np.ndarray) -> _Box | None:
+        """Grow (or roll, centred on centre_xy) so that the frame's `box` fits, if it can;
+        the part of it the grid then holds (None: nothing)."""
+        if not (self.shape[0] and self._box().contains(box)):  # most frames fit as is
+            centre = cells_of(np.asarray(centre_xy, dtype=float)[None], self.resolution)[0]
+            self._ensure(np.array(box.lo), np.array(box.hi), centre)
+        return box.intersection(self._box())
 
     def _box(self) -> _Box:
         """The lattice cells the grid holds."""
@@ -415,6 +443,9 @@ def _in_wedge(x: np.ndarray, y: np.ndarray, heading: float, view: ViewWedge) -> 
     return inside
 
 
+_NO_HITS = tuple(np.zeros((0, 0), dtype=np.float32) for _ in range(3))
+
+
 class OccupancyGrid(GridExtent):
     """Log-odds occupancy grid (float32 layer "log_odds"; 0 = unknown)."""
 
@@ -446,10 +477,38 @@ class OccupancyGrid(GridExtent):
         self._layers["log_odds"] *= np.float32(factor)
 
     def _update(self, layers: dict[str, np.ndarray], frame: _Frame) -> None:
+        update_log_odds(layers["log_odds"], frame.occupied, frame.rays(), *self._increments())
+
+    def _increments(self) -> tuple[np.float32, np.float32, np.float32, np.float32]:
         p = self.config.log_odds
         f32 = np.float32
-        args = (f32(p.l_occ), f32(p.l_free), f32(p.l_min), f32(p.l_max))
-        update_log_odds(layers["log_odds"], frame.occupied, frame.rays(), *args)
+        return f32(p.l_occ), f32(p.l_free), f32(p.l_min), f32(p.l_max)
+
+    def _hit_layers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The layers the obstacle points are added to (none: empty arrays)."""
+        return _NO_HITS
+
+    def update_at(
+        self, obs: PlanarObservation, pose: np.ndarray, centre_xy: np.ndarray | None = None
+    ) -> Callable[[], None] | None:
+        pose = as_pose(pose)
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        res = self.resolution
+        world = np.empty((len(obs.points), 2))
+        sx, sy, *bounds = place_frame(
+            obs.points, float(pose[0]), float(pose[1]), float(c), float(s),
+            float(obs.sensor_xy[0]), float(obs.sensor_xy[1]), res, world,
+        )  # fmt: skip
+        box = _Box(*bounds)
+        window = self._fit(box, np.array([sx, sy]) if centre_xy is None else centre_xy)
+        if window is None:
+            return None
+        args = (
+            world, len(obs.obstacles), sx, sy, res, self.config.bundle_rays,
+            box.as_kernel_box, window.as_kernel_box, self.lattice_offset,
+            self._layers["log_odds"], *self._increments(), *self._hit_layers(),
+        )  # fmt: skip
+        return lambda: integrate_log_odds(*args)
 
 
 class HitCentroidGrid(OccupancyGrid):
@@ -474,6 +533,9 @@ class HitCentroidGrid(OccupancyGrid):
             layers["hit_y"],
             layers["hits"],
         )
+
+    def _hit_layers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self._layers["hit_x"], self._layers["hit_y"], self._layers["hits"]
 
     def hit_centroids(self) -> np.ndarray:
         """(ny, nx, 2) mean offset of each cell's points from its centre (0 where none)."""

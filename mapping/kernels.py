@@ -312,3 +312,81 @@ def accumulate_hits(
             hit_x[r, c] += x - (i + 0.5) * resolution
             hit_y[r, c] += y - (j + 0.5) * resolution
             hits[r, c] += 1.0
+
+
+@njit(cache=True, nogil=True)
+def place_frame(
+    points: np.ndarray,
+    x: float,
+    y: float,
+    c: float,
+    s: float,
+    sensor_x: float,
+    sensor_y: float,
+    resolution: float,
+    out: np.ndarray,
+) -> tuple[float, float, int, int, int, int]:
+    """A walker-frame frame placed at the pose (x, y) with heading cos c, sin s: its
+    float32 points (N×2) into `out` (N×2 float64) as `place_points`, and (sx, sy, i0, j0,
+    i1, j1): the sensor's world position (the same operations) and the inclusive bounds
+    of the cells ⌊p/resolution⌋ of the sensor and the points, as
+    `mapping.grid.GridExtent.integrate` takes them from a `WorldObservation`."""
+    place_points(points, x, y, c, s, out)
+    sx = (x + c * sensor_x) - s * sensor_y
+    sy = (y + s * sensor_x) + c * sensor_y
+    i = math.floor(sx / resolution)
+    j = math.floor(sy / resolution)
+    i0, j0, i1, j1 = _widen(out, resolution, (i, j, i, j))
+    return sx, sy, i0, j0, i1, j1
+
+
+@njit(cache=True, nogil=True)
+def integrate_log_odds(
+    world: np.ndarray,
+    n_obstacles: int,
+    sx: float,
+    sy: float,
+    resolution: float,
+    bundle: bool,
+    box: tuple[int, int, int, int],
+    window: tuple[int, int, int, int],
+    grid_lo: tuple[int, int],
+    log_odds: np.ndarray,
+    l_occ: np.float32,
+    l_free: np.float32,
+    l_min: np.float32,
+    l_max: np.float32,
+    hit_x: np.ndarray,
+    hit_y: np.ndarray,
+    hits: np.ndarray,
+) -> None:
+    """One frame into a log-odds grid in one call, as `mapping.grid.OccupancyGrid`'s
+    update does it in several: `world` (N×2 float64) its obstacle points (the first
+    n_obstacles) and ray ends, the sensor at (sx, sy); the cells marked over the frame's
+    `box` (i0, j0, width, height), the rays traced (`mark_end_rays`), and the cells of
+    `window` (the part of the box the grid holds, same form) updated as
+    `update_log_odds` in the (ny, nx) layers whose cell [0, 0] is the lattice cell
+    `grid_lo`; with hit layers (not empty, as `HitCentroidGrid`'s) the obstacle points
+    are added to them as `accumulate_hits`."""
+    i0, j0, width, height = box
+    ends = np.zeros(width * height, dtype=np.bool_)
+    mark_cells(world[n_obstacles:], resolution, box, ends)
+    occupied = np.zeros(width * height, dtype=np.bool_)
+    mark_cells(world[:n_obstacles], resolution, box, occupied)
+    crossed = ends.copy()
+    mark_end_rays(ends, sx, sy, resolution, bundle, box, crossed)
+    wi0, wj0, w_width, w_height = window
+    row0, col0 = wj0 - grid_lo[1], wi0 - grid_lo[0]
+    for r in range(w_height):
+        f0 = (wj0 + r - j0) * width + (wi0 - i0)
+        for k in range(w_width):
+            if occupied[f0 + k]:
+                log_odds[row0 + r, col0 + k] = min(log_odds[row0 + r, col0 + k] + l_occ, l_max)
+            elif crossed[f0 + k]:
+                log_odds[row0 + r, col0 + k] = max(log_odds[row0 + r, col0 + k] + l_free, l_min)
+    if hits.size:
+        rows, cols = slice(row0, row0 + w_height), slice(col0, col0 + w_width)
+        accumulate_hits(
+            world[:n_obstacles], resolution, window, hit_x[rows, cols], hit_y[rows, cols],
+            hits[rows, cols],
+        )  # fmt: skip

@@ -122,7 +122,7 @@ class RebuildJob:
     def run(self) -> None:
         try:
             for _, obs, pose in self.snapshot:
-                self.grid.integrate(obs.in_world(pose), centre_xy=pose[:2])
+                self.grid.integrate_at(obs, pose, centre_xy=pose[:2])
         except BaseException as e:  # re-raised by finish_rebuild in the caller's thread
             self.error = e
 
@@ -221,7 +221,7 @@ class OccupancyMapper:
             limit = self.config.max_keyframes
             if limit is not None and len(self._keyframes) > limit:
                 del self._keyframes[next(iter(self._keyframes))]
-        self._grid.integrate(obs.in_world(pose), centre_xy=pose[:2])
+        self._grid.integrate_at(obs, pose, centre_xy=pose[:2])
 
     def rebuild(self, poses: Mapping[Hashable, np.ndarray] | None = None) -> None:
         """Re-create the map from the kept keyframes, in the order they were kept.
@@ -238,7 +238,7 @@ class OccupancyMapper:
             self._keyframes[key] = _Keyframe(self._keyframes[key].obs, pose)
         self._grid.reset()
         for kf in self._keyframes.values():
-            self._grid.integrate(kf.obs.in_world(kf.pose), centre_xy=kf.pose[:2])
+            self._grid.integrate_at(kf.obs, kf.pose, centre_xy=kf.pose[:2])
 
     def start_rebuild(self, poses: Mapping[Hashable, np.ndarray]) -> RebuildJob:
         """`rebuild(poses)` in a thread of its own, for a loop that must not wait for it:
@@ -271,7 +271,7 @@ class OccupancyMapper:
                 self._keyframes[key] = _Keyframe(obs, pose)
         for key, kf in self._keyframes.items():
             if key not in done:
-                job.grid.integrate(kf.obs.in_world(kf.pose), centre_xy=kf.pose[:2])
+                job.grid.integrate_at(kf.obs, kf.pose, centre_xy=kf.pose[:2])
         self._grid = job.grid
 
     def keys(self) -> Iterator[Hashable]:

@@ -10,6 +10,7 @@ rebuilt when a smoother revises past poses.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -95,13 +96,18 @@ class PlanarObservation:
             ray_ends=quantise_points(self.ray_ends, quantum),
         )
 
+    @cached_property
+    def points(self) -> np.ndarray:
+        """The obstacle points, then the ray ends: one float32 array, placed in one pass."""
+        return np.concatenate([self.obstacles, self.ray_ends])
+
     def in_world(self, world_T_walker: np.ndarray) -> WorldObservation:
         """This observation placed at the planar pose (x, y, θ) of the walker."""
         pose = as_pose(world_T_walker, "world_T_walker")
         c, s = np.cos(pose[2]), np.sin(pose[2])
         x, y = self.sensor_xy
         n = len(self.obstacles)  # both point sets in one pass: half the numpy calls
-        points = _place(np.concatenate([self.obstacles, self.ray_ends]), pose, c, s)
+        points = _place(self.points, pose, c, s)
         return WorldObservation(
             # hardware.geometry.transform_points, operation for operation (same float64 values)
             sensor_xy=np.array([pose[0] + c * x - s * y, pose[1] + s * x + c * y]),

@@ -204,10 +204,13 @@ class GridRbpf(ParticleFilter):
         return self._projector.project(msg)
 
     def _integrate(self, obs) -> None:
-        """The frame into every particle's map at its pose, copying shared maps first."""
+        """The frame into every particle's map at its pose, copying shared maps first:
+        the maps grow on this thread, and the compiled updates (which release the GIL)
+        run on the threads."""
         users: dict[int, int] = {}
         for m in self._maps:
             users[id(m)] = users.get(id(m), 0) + 1
+        updates = []
         for i, pose in enumerate(self.particles):
             grid = self._maps[i]
             if users[id(grid)] > 1:
@@ -215,7 +218,14 @@ class GridRbpf(ParticleFilter):
                 grid = self._maps[i] = grid.copy()
                 users[id(grid)] = 1
                 self.counts["map_copies"] += 1
-            grid.integrate(obs.in_world(pose), centre_xy=pose[:2])
+            if (update := grid.update_at(obs, pose, centre_xy=pose[:2])) is not None:
+                updates.append(update)
+        if self._pool is None:
+            for update in updates:
+                update()
+        else:
+            parts = [updates[k :: self._threads] for k in range(self._threads)]
+            list(self._pool.map(lambda part: [u() for u in part], parts))
 
     # -- frames ---------------------------------------------------------------------------
     def _observe_frame(self, msg: DepthFrame | LaserScan, projection: Projection) -> None:
