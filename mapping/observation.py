@@ -9,8 +9,7 @@ rebuilt when a smoother revises past poses.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-from functools import cached_property
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -66,6 +65,8 @@ class PlanarObservation:
     ray_ends: (M, 2) float32 end points of the rays that show free space from sensor_xy;
         a ray that ended on an obstacle has its end among `obstacles` as well.
     view: the sensor's view wedge, or None to take the traced rays as the region in view.
+    points: the obstacle points, then the ray ends, in one (N + M, 2) array, of which
+        `obstacles` and `ray_ends` are views (the two are placed in one pass).
     """
 
     sensor_xy: np.ndarray
@@ -73,10 +74,16 @@ class PlanarObservation:
     obstacles: np.ndarray
     ray_ends: np.ndarray
     view: ViewWedge | None = None
+    points: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         _coerce_arrays(self, np.float32)
         object.__setattr__(self, "sensor_yaw", float(self.sensor_yaw))
+        points = np.concatenate([self.obstacles, self.ray_ends])
+        n = len(self.obstacles)
+        object.__setattr__(self, "points", points)
+        object.__setattr__(self, "obstacles", points[:n])
+        object.__setattr__(self, "ray_ends", points[n:])
 
     @property
     def nbytes(self) -> int:
@@ -95,11 +102,6 @@ class PlanarObservation:
             obstacles=quantise_points(self.obstacles, quantum),
             ray_ends=quantise_points(self.ray_ends, quantum),
         )
-
-    @cached_property
-    def points(self) -> np.ndarray:
-        """The obstacle points, then the ray ends: one float32 array, placed in one pass."""
-        return np.concatenate([self.obstacles, self.ray_ends])
 
     def in_world(self, world_T_walker: np.ndarray) -> WorldObservation:
         """This observation placed at the planar pose (x, y, θ) of the walker."""
