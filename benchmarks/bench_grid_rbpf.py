@@ -12,7 +12,8 @@ frames and on the Intel lab log, accuracy on Intel, and the Intel replay's peak 
 targets (issue 13): >= 50x real time on the walker's frames, >= 30x on Intel with its
 accuracy kept (0.067 m), Intel peak memory <= 2 GB.
 
-The filter spreads its particles' matches over one thread per core it may run on
+The filter spreads its particles' matches and map updates over one thread per core it
+may run on
 (`grid-rbpf.threads`); `make bench` pins every benchmark to one core, so it measures
 one thread; --threads N sets the number (run it without taskset to use more cores).
 

@@ -113,8 +113,8 @@ class GridRbpfConfig(ParticleSettings):
         proposal follows the sharp likelihood while the weights, which decide which
         particles (and maps) survive, are smoothed, so that resampling does not deplete
         the particles at every frame.
-    threads: the particles' scan matches (compiled, run without the GIL) are spread
-        over this many threads; 0: one per core the process may run on (1 under
+    threads: the particles' scan matches and map updates (compiled, run without the
+        GIL) are spread over this many threads; 0: one per core the process may run on (1 under
         `taskset -c 0`). The answers are the same for any number: each particle's match
         reads only its own map and draws, and the most probable particle, whose turned
         start the others share, is matched first.
