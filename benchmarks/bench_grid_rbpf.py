@@ -13,9 +13,9 @@ targets (issue 13): >= 50x real time on the walker's frames, >= 30x on Intel wit
 accuracy kept (0.067 m), Intel peak memory <= 2 GB.
 
 The filter spreads its particles' matches and map updates over one thread per core it
-may run on
-(`grid-rbpf.threads`); `make bench` pins every benchmark to one core, so it measures
-one thread; --threads N sets the number (run it without taskset to use more cores).
+may run on (`grid-rbpf.threads`); `make bench` pins every benchmark to one core, so it
+measures one thread; --threads N sets the number (run it without taskset to use more
+cores).
 
 Usage: .venv/bin/python benchmarks/bench_grid_rbpf.py [--only walker|intel] [--duration S]
            [--threads N]
