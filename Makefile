@@ -46,10 +46,10 @@ demo: install
 	$(VENV)/bin/walkerslam demo --out out/demo
 
 test: install-live firmware
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto
 
 test-fast: install-live firmware
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -n auto -m "not slow"
 
 bench: install-live firmware
 	$(PY) benchmarks/run_all.py
