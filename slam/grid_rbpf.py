@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, fields, replace
 
@@ -114,8 +115,8 @@ class GridRbpfConfig(ParticleSettings):
         particles (and maps) survive, are smoothed, so that resampling does not deplete
         the particles at every frame.
     threads: the particles' scan matches and map updates (compiled, run without the
-        GIL) are spread over this many threads; 0: one per core the process may run on (1 under
-        `taskset -c 0`). The answers are the same for any number: each particle's match
+        GIL) are spread over this many threads; 0: one per core the process may run on
+        (1 under `taskset -c 0`). The answers are the same for any number: each particle's match
         reads only its own map and draws, and the most probable particle, whose turned
         start the others share, is matched first.
     The defaults were chosen on the Intel lab log (BENCHMARKS.md: 60 particles, σ 0.03 m,
@@ -220,12 +221,15 @@ class GridRbpf(ParticleFilter):
                 self.counts["map_copies"] += 1
             if (update := grid.update_at(obs, pose, centre_xy=pose[:2])) is not None:
                 updates.append(update)
+        self._on_threads(lambda part: [update() for update in part], updates)
+
+    def _on_threads(self, work: Callable[[Sequence], object], items: Sequence) -> None:
+        """work(part) for every part of `items`: one part per thread (work must release
+        the GIL to gain), or all of them here without threads."""
         if self._pool is None:
-            for update in updates:
-                update()
+            work(items)
         else:
-            parts = [updates[k :: self._threads] for k in range(self._threads)]
-            list(self._pool.map(lambda part: [u() for u in part], parts))
+            list(self._pool.map(work, [items[k :: self._threads] for k in range(self._threads)]))
 
     # -- frames ---------------------------------------------------------------------------
     def _observe_frame(self, msg: DepthFrame | LaserScan, projection: Projection) -> None:
@@ -267,11 +271,7 @@ class GridRbpf(ParticleFilter):
                 turns = turns[won - 1 : won] if won else turns[:0]
                 self.counts["turn_wins"] += bool(won)
             order = order[1:]
-        if self._pool is None:
-            match(order, turns)
-        else:  # (propose releases the GIL)
-            chunks = np.array_split(order, self._threads)
-            list(self._pool.map(match, chunks, [turns] * len(chunks)))
+        self._on_threads(lambda part: match(part, turns), order)  # (propose releases the GIL)
         scored = bool(np.any(matched >= 0))
         self.counts["scan_matches"] += int(np.sum(matched == 1))
         self.counts["unmatched"] += int(np.sum(matched == 0))
