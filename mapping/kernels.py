@@ -384,16 +384,16 @@ def integrate_log_odds(
     crossed = ends.copy()
     mark_end_rays(ends, sx, sy, resolution, bundle, box, crossed)
     wi0, wj0, w_width, w_height = window
+    crop = (slice(wj0 - j0, wj0 - j0 + w_height), slice(wi0 - i0, wi0 - i0 + w_width))
     row0, col0 = wj0 - grid_lo[1], wi0 - grid_lo[0]
-    for r in range(w_height):
-        f0 = (wj0 + r - j0) * width + (wi0 - i0)
-        for k in range(w_width):
-            if occupied[f0 + k]:
-                log_odds[row0 + r, col0 + k] = min(log_odds[row0 + r, col0 + k] + l_occ, l_max)
-            elif crossed[f0 + k]:
-                log_odds[row0 + r, col0 + k] = max(log_odds[row0 + r, col0 + k] + l_free, l_min)
+    rows, cols = slice(row0, row0 + w_height), slice(col0, col0 + w_width)
+    update_log_odds(
+        log_odds[rows, cols],
+        occupied.reshape(height, width)[crop],
+        crossed.reshape(height, width)[crop],
+        l_occ, l_free, l_min, l_max,
+    )  # fmt: skip
     if hits.size:
-        rows, cols = slice(row0, row0 + w_height), slice(col0, col0 + w_width)
         accumulate_hits(
             world[:n_obstacles], resolution, window, hit_x[rows, cols], hit_y[rows, cols],
             hits[rows, cols],
