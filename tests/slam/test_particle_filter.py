@@ -428,3 +428,33 @@ def test_compiled_field_score_equals_the_cell_lookup():
     expected = pf.pf.beam_weight * log_p[pf._cells(poses, points, field)].sum(axis=1)
     assert (pf._cells(poses, points, field) == ny * nx).any()  # some fall outside
     np.testing.assert_allclose(pf._score(poses, points, field), expected, rtol=1e-12)
+
+
+@pytest.mark.parametrize(("sigma", "res"), [(0.1, 0.05), (0.3, 0.1), (0.05, 0.05)])
+def test_likelihood_field_equals_the_formula_at_exact_distances(sigma, res):
+    """The compiled field (slam.grid_kernels.log_likelihood_field) measures distances only
+    up to the filter's cap; every cell, near a surface or far beyond the cap, equals
+    log(p_hit·N(d; 0, σ) + p_rand) at the exact Euclidean distance (scipy's transform),
+    to the last bit, and the last entry (outside the window) is log(p_rand)."""
+    from scipy import ndimage
+
+    from slam.grid_kernels import log_likelihood_field
+
+    cfg = ParticleFilterConfig(sigma_hit_m=sigma)
+    pf = ParticleFilter(cfg, WalkerCalibration())
+    cap, table = pf._log_p_table(res)
+    p_hit = cfg.z_hit / (math.sqrt(2.0 * math.pi) * sigma)
+    p_rand = cfg.z_rand / cfg.max_range_m
+    assert 1 < cap < 200 and table[-1] == math.log(p_rand)
+    rng = np.random.default_rng(3)
+    beyond = 0
+    for density in (0.0005, 0.005, 0.05, 0.4):
+        targets = rng.random((rng.integers(60, 140), rng.integers(60, 140))) < density
+        targets[rng.integers(targets.shape[0]), :] |= density < 0.001  # a wall, at least
+        dist = ndimage.distance_transform_edt(~targets).astype(np.float32).astype(float) * res
+        expected = np.log(p_hit * np.exp(-0.5 * (dist / sigma) ** 2) + p_rand).ravel()
+        got = log_likelihood_field(targets, table, cap)
+        assert got.shape == (targets.size + 1,) and got[-1] == math.log(p_rand)
+        np.testing.assert_array_equal(got[:-1], expected)
+        beyond += np.count_nonzero(dist > cap * res)
+    assert beyond > 500  # the sparse grids' cells beyond the cap are in the check
