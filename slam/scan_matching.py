@@ -11,7 +11,7 @@ A *reference* (one scan, or several scans placed in one frame: a local submap) i
 prepared once: a k-d tree (`scipy.spatial.cKDTree`), a surface normal per point from
 the principal axes of its neighbours (points on a line), and, for the correlative
 search, a likelihood field: exp(−d²/2σ²) of the distance d to the nearest reference
-point on a `grid_m` grid (`scipy.ndimage.distance_transform_edt`).
+point on a `grid_m` grid (mapping.distance, exact).
 
 `match(reference, query, guess, window)` finds the pose of the query scan's frame in the
 reference frame:
@@ -64,6 +64,7 @@ from hardware.calibration import WalkerCalibration
 from hardware.geometry import wrap_angle
 from hardware.messages import DepthFrame, LaserScan
 from mapping.depth_points import DepthConfig, project_depth_frame
+from mapping.distance import squared_distances
 from mapping.scan_points import ScanConfig, scan_to_observation
 
 FREE_BIN_RAD = math.radians(0.5)  # angular bins of a scan's free-space polygon
@@ -363,7 +364,7 @@ class Reference:
             occ = np.zeros(shape, dtype=bool)
             ij = np.floor((self.points - lo) / res).astype(int)
             occ[ij[:, 1], ij[:, 0]] = True
-            dist = ndimage.distance_transform_edt(~occ) * res
+            dist = np.sqrt(squared_distances(occ)) * res  # = scipy's distance_transform_edt
             lik = np.exp(-0.5 * (dist / cfg.field_sigma_m) ** 2)
             free = np.zeros(shape, dtype=np.uint8)
             polys = [
