@@ -9,6 +9,12 @@ cells as an integer, exactly, so that the callers choose the arithmetic after it
 square root in float64 equals scipy's `distance_transform_edt`, in float32 OpenCV's
 `distanceTransform(DIST_L2, DIST_MASK_PRECISE)`, and a field that depends on the
 distance alone can be a table indexed by the squared distance.
+
+A field that stops changing a few σ from a surface (the particle filter's reaches its
+floor to the last bit ~19 cells out) needs distances only up to there:
+`capped_squared_distances` finds them with (2·cap − 1) additions per cell in runs along
+memory (vector code), 2–3× faster than the full transform's data-dependent branch per
+cell at such caps.
 """
 
 from __future__ import annotations
@@ -87,4 +93,48 @@ def squared_distances(targets: np.ndarray) -> np.ndarray:
                 k += 1
             p = v[k]
             out[i, x] = (x - p) * (x - p) + g[i, p]
+    return out
+
+
+@njit(cache=True, nogil=True)
+def capped_squared_distances(targets: np.ndarray, cap: int) -> np.ndarray:
+    """(H, W) int32 squared Euclidean distance [cells²] from each cell of the (H, W) bool
+    `targets` to the nearest True cell where that is below cap², and cap² elsewhere."""
+    ny, nx = targets.shape
+    floor_d2 = cap * cap
+    # the squared distance to the nearest target in the same column, up to cap, swept
+    # down and then up one row at a time, in rows padded by cap cells of cap²
+    col = np.empty((ny, nx + 2 * cap), np.int32)
+    col[:, :cap] = floor_d2
+    col[:, cap + nx :] = floor_d2
+    run = np.empty(nx, np.int32)
+    run[:] = cap
+    for i in range(ny):
+        here = col[i, cap : cap + nx]
+        for j in range(nx):
+            d = 0 if targets[i, j] else min(run[j] + 1, cap)
+            run[j] = d
+            here[j] = d * d
+    run[:] = cap
+    for i in range(ny - 1, -1, -1):
+        here = col[i, cap : cap + nx]
+        for j in range(nx):
+            d = 0 if targets[i, j] else min(run[j] + 1, cap)
+            run[j] = d
+            here[j] = min(here[j], d * d)
+    # along each row, the nearest of the columns within cap − 1 cells (views with
+    # indices from 0 up: no negative-index checks, so the loop becomes vector code)
+    out = np.empty((ny, nx), np.int32)
+    for i in range(ny):
+        row = col[i]
+        best = out[i]
+        best[:] = row[cap : cap + nx]
+        for dq in range(1, cap):
+            dd = dq * dq
+            left = row[cap - dq : cap - dq + nx]
+            right = row[cap + dq : cap + dq + nx]
+            for x in range(nx):
+                best[x] = min(best[x], min(left[x], right[x]) + dd)
+        for x in range(nx):
+            best[x] = min(best[x], floor_d2)
     return out

@@ -24,6 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
+from mapping.distance import capped_squared_distances
 from slam.kernel_math import wrap
 from slam.scan_proposal import fit_one
 
@@ -158,50 +159,18 @@ def field_log_likelihood(
 def log_likelihood_field(targets: np.ndarray, table: np.ndarray, cap: int) -> np.ndarray:
     """The flat log p of a likelihood field over the (H, W) bool `targets` (the cells a
     point is expected on), for `field_log_likelihood`: table[d²] at each cell, d² its
-    exact squared distance [cells²] to the nearest target, and table[cap²] (the field's
-    floor, which the table must equal for every d ≥ cap) at any d² ≥ cap² and in the
-    last entry, for points outside. Distances are measured only up to cap, so the cost
-    is (2·cap − 1) additions per cell in runs along memory (the field's floor is reached
-    a few σ out, so cap is ~20 cells for the particle filter), where a full transform
-    (Felzenszwalb & Huttenlocher) takes a data-dependent branch per cell."""
+    squared distance [cells²] to the nearest target measured up to cap
+    (mapping.distance.capped_squared_distances), and table[cap²] — the field's floor,
+    which the table must equal for every d ≥ cap — in the last entry, for points
+    outside."""
     ny, nx = targets.shape
-    floor_d2 = cap * cap
-    # the squared distance to the nearest target in the same column, up to cap, swept
-    # down and then up one row at a time, in rows padded by cap cells of cap²
-    col = np.empty((ny, nx + 2 * cap), np.int32)
-    col[:, :cap] = floor_d2
-    col[:, cap + nx :] = floor_d2
-    run = np.empty(nx, np.int32)
-    run[:] = cap
-    for i in range(ny):
-        here = col[i, cap : cap + nx]
-        for j in range(nx):
-            d = 0 if targets[i, j] else min(run[j] + 1, cap)
-            run[j] = d
-            here[j] = d * d
-    run[:] = cap
-    for i in range(ny - 1, -1, -1):
-        here = col[i, cap : cap + nx]
-        for j in range(nx):
-            d = 0 if targets[i, j] else min(run[j] + 1, cap)
-            run[j] = d
-            here[j] = min(here[j], d * d)
-    # along each row, the nearest of the columns within cap − 1 cells
+    d2 = capped_squared_distances(targets, cap)
     out = np.empty(ny * nx + 1)
-    best = np.empty(nx, np.int32)
     for i in range(ny):
-        row = col[i]
-        best[:] = row[cap : cap + nx]
-        for dq in range(1, cap):
-            dd = dq * dq
-            left = row[cap - dq : cap - dq + nx]  # (views: indices from 0 up, no
-            right = row[cap + dq : cap + dq + nx]  # negative-index checks, vector code)
-            for x in range(nx):
-                best[x] = min(best[x], min(left[x], right[x]) + dd)
         cells = out[i * nx : (i + 1) * nx]
         for x in range(nx):
-            cells[x] = table[min(best[x], floor_d2)]
-    out[ny * nx] = table[floor_d2]
+            cells[x] = table[d2[i, x]]
+    out[ny * nx] = table[cap * cap]
     return out
 
 

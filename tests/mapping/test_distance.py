@@ -32,3 +32,16 @@ def test_distances_along_a_lone_target_row_and_column():
     d2 = squared_distances(targets)
     ii, jj = np.mgrid[0:5, 0:8]
     np.testing.assert_array_equal(d2, (ii - 2) ** 2 + (jj - 3) ** 2)
+
+
+@pytest.mark.parametrize("cap", [1, 3, 19, 40])
+def test_capped_distances_are_exact_below_the_cap(cap):
+    """Below cap² the capped transform is the exact one; from it on, cap²."""
+    from mapping.distance import capped_squared_distances
+
+    rng = np.random.default_rng(cap)
+    for density in (0.001, 0.02, 0.3):
+        targets = rng.random((rng.integers(20, 120), rng.integers(20, 120))) < density
+        exact = squared_distances(targets)
+        got = capped_squared_distances(targets, cap)
+        np.testing.assert_array_equal(got, np.minimum(exact, cap * cap))
