@@ -23,7 +23,7 @@ from __future__ import annotations
 import threading
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from hardware.clock import HostClock
@@ -73,6 +73,17 @@ class DeviceStats:
     def rate_hz(self, now: float, window_s: float = 1.0) -> float:
         n = sum(1 for a in self.recent if now - a <= window_s)
         return n / window_s
+
+    def snapshot(self) -> DeviceStats:
+        """A copy that its device's thread does not change."""
+        return replace(
+            self,
+            by_type=dict(self.by_type),
+            dropped_by_type=dict(self.dropped_by_type),
+            last_by_type=dict(self.last_by_type),
+            stalled=set(self.stalled),
+            recent=deque(self.recent, maxlen=self.recent.maxlen),
+        )
 
 
 @dataclass
@@ -128,7 +139,10 @@ class LiveSources:
 
     @property
     def stats(self) -> dict[str, DeviceStats]:
-        return {d.name: d.stats for d in self._devices}
+        """Each device's statistics as they are now: copies, taken under the lock that
+        the devices' threads update them under."""
+        with self._cond:
+            return {d.name: d.stats.snapshot() for d in self._devices}
 
     def start(self) -> None:
         if self._started:
