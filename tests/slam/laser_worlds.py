@@ -65,11 +65,12 @@ def render_scan(
     return LaserScan(t, float(a[0]), float(a[1] - a[0]), r.astype(np.float32), range_max)
 
 
-def loop_messages(laps: int = 2):
+def loop_messages(laps: int = 2, seed: int = 5):
     """Drive twice around the room (1.5 m from its walls) at 0.5 m/s; velocity odometry
     at 10 Hz with a 4 % speed error and a 0.03 rad/s yaw-rate bias; a 270° laser scan
-    (1 cm noise) every 0.5 s. Returns messages and the true trajectory."""
-    rng = np.random.default_rng(5)
+    (1 cm noise, drawn with `seed`) every 0.5 s. Returns messages and the true
+    trajectory."""
+    rng = np.random.default_rng(seed)
     corners = np.array([(1.5, 1.5), (8.5, 1.5), (8.5, 4.2), (5.0, 4.2), (5.0, 6.5), (1.5, 6.5)])
     path = np.vstack([corners] * laps + [corners[:1]])
     dt, v, w_turn = 0.1, 0.5, 0.8
