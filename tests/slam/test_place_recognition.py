@@ -82,3 +82,12 @@ def test_a_revisit_the_estimate_is_far_from_is_closed_by_place_recognition():
     # (over the second lap: the truth's times)
     assert ate(off.trajectory(), truth2)["ate_rmse_unaligned_m"] > 20.0
     assert ate(on.trajectory(), truth2)["ate_rmse_unaligned_m"] < 0.2
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [("every", 0, "every must be >= 1"), ("window_m", 0.0, "window_m and range_m must be > 0")],
+)
+def test_bad_place_recognition_settings_are_refused(field, value, message):
+    with pytest.raises(ValueError, match=message):
+        PlaceRecognition(**{field: value})
