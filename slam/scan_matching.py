@@ -66,6 +66,7 @@ from hardware.messages import DepthFrame, LaserScan
 from mapping.depth_points import DepthConfig, project_depth_frame
 from mapping.distance import squared_distances
 from mapping.scan_points import ScanConfig, scan_to_observation
+from slam.scan_kernels import grid_scores
 
 FREE_BIN_RAD = math.radians(0.5)  # angular bins of a scan's free-space polygon
 
@@ -536,22 +537,6 @@ def _evaluate(
 # correlative search
 
 
-def _grid_scores(
-    flat: np.ndarray,
-    shape: tuple[int, int],
-    cells: np.ndarray,
-    x_offs: np.ndarray,
-    y_offs: np.ndarray,
-) -> np.ndarray:
-    """Mean over the points of a flattened field (shape H×W) at their cells (n, 2:
-    column, row) shifted by every (y, x) cell offset: (len(y_offs), len(x_offs));
-    lookups outside the field are clipped to its (zero) border."""
-    h, w = shape
-    cols = np.clip(cells[:, 0, None] + x_offs[None, :], 0, w - 1)
-    rows = np.clip(cells[:, 1, None] + y_offs[None, :], 0, h - 1)
-    return flat[rows[:, :, None] * w + cols[:, None, :]].mean(axis=0)
-
-
 def correlative_search(
     ref: Reference,
     query: np.ndarray,
@@ -584,7 +569,7 @@ def correlative_search(
     ]
     if nt <= cfg.multires_offsets:
         offs = np.arange(-nt, nt + 1) * step_cells  # cell offsets
-        scores = np.stack([_grid_scores(flat, pooled.shape, c, offs, offs) for c in cells])
+        scores = np.stack([grid_scores(flat, *pooled.shape, c, offs, offs) for c in cells])
         a_i, iy, ix = np.unravel_index(np.argsort(scores, axis=None)[::-1][:5000], scores.shape)
         found = zip(scores[a_i, iy, ix], a_i, offs[iy], offs[ix], strict=True)
     else:
@@ -592,13 +577,13 @@ def correlative_search(
         block = k * step_cells
         bound = ndimage.maximum_filter(lik, size=block + step_cells + 1, mode="constant").ravel()
         centres = np.arange(-math.ceil(nt / k), math.ceil(nt / k) + 1) * block
-        upper = np.stack([_grid_scores(bound, lik.shape, c, centres, centres) for c in cells])
+        upper = np.stack([grid_scores(bound, *lik.shape, c, centres, centres) for c in cells])
         best = np.argsort(upper, axis=None)[::-1][: cfg.multires_blocks]
         inner = np.arange(-(k // 2), k - k // 2) * step_cells
         parts = []
         for a_b, iy_b, ix_b in zip(*np.unravel_index(best, upper.shape), strict=True):
             ys, xs = centres[iy_b] + inner, centres[ix_b] + inner
-            sc = _grid_scores(flat, pooled.shape, cells[a_b], xs, ys)
+            sc = grid_scores(flat, *pooled.shape, cells[a_b], xs, ys)
             yy, xx = np.meshgrid(ys, xs, indexing="ij")
             parts.append(
                 np.column_stack([sc.ravel(), np.full(sc.size, a_b), yy.ravel(), xx.ravel()])

@@ -297,3 +297,25 @@ def test_intel_lab_subset_relations_clearly_beat_dead_reckoning():
     assert e_sm["relations_trans_mean_m"] < 0.05 * e_dr["relations_trans_mean_m"]
     assert e_sm["relations_rot_mean_deg"] < 0.1 * e_dr["relations_rot_mean_deg"]
     assert sm.diagnostics()["loop_closures"] > 20
+
+
+def test_compiled_grid_scores_equal_numpys_gather_and_mean():
+    """The correlative search's scores (slam.scan_kernels.grid_scores) equal numpy's
+    one gather and mean over the points to the bit, lookups off the field clipped."""
+    from slam.scan_kernels import grid_scores
+
+    rng = np.random.default_rng(21)
+    for _ in range(60):
+        h, w = (int(v) for v in rng.integers(5, 200, 2))
+        flat = rng.random(h * w) - 1.0 * (rng.random(h * w) < 0.05)
+        n = int(rng.integers(1, 300))
+        cells = np.column_stack([rng.integers(-20, w + 20, n), rng.integers(-20, h + 20, n)])
+        k = int(rng.integers(1, 30))
+        x_offs = np.arange(-k, k + 1) * int(rng.integers(1, 4))
+        y_offs = np.arange(-k, k + 2)
+        cols = np.clip(cells[:, 0, None] + x_offs[None, :], 0, w - 1)
+        rows = np.clip(cells[:, 1, None] + y_offs[None, :], 0, h - 1)
+        expected = flat[rows[:, :, None] * w + cols[:, None, :]].mean(axis=0)
+        got = grid_scores(flat, h, w, cells.astype(np.int64), x_offs, y_offs)
+        assert got.shape == (len(y_offs), len(x_offs))
+        np.testing.assert_array_equal(got, expected)
