@@ -936,11 +936,7 @@ class GtsamSmoother(Localizer):
             wxy, wth = c.scan.gate.unknown_window
         guess = relative_guess(poses[prev.kf], poses[cur.kf])
         res = match(ref, cur.scan, guess, wxy, wth, self._matcher)
-        if res.accepted(
-            c.scan.gate.min_inlier_fraction,
-            c.scan.gate.max_conflict_fraction,
-            c.scan.gate.max_ambiguity,
-        ):
+        if c.scan.gate.accepts(res):
             self._add_match(prev.kf, cur.kf, res, c.scan.gate.robust, c.scan.gate.robust_k)
             self.counts["scan_factors"] += 1
             self._flush()
@@ -1022,6 +1018,12 @@ class GtsamSmoother(Localizer):
                     break
         return chosen, dist
 
+    def _neighbours(self, i: int, half: int) -> range:
+        """Kept scan i and its `half` neighbours either side, none of the newest
+        loop.min_separation (a loop-closure candidate's submap)."""
+        last = len(self._scans) - self.config.loop.min_separation
+        return range(max(0, i - half), min(last, i + half + 1))
+
     def _place_closure(self, poses: np.ndarray) -> bool:
         """Every place.every calls: try the old kept scans whose ring keys are nearest
         the newest scan's (and at least place.min_path_m back along the path); True
@@ -1056,20 +1058,15 @@ class GtsamSmoother(Localizer):
         i's wider neighbourhood, and add it if both pass place.gate."""
         loop = self.config.loop
         pl = loop.place
-        last = len(self._scans) - loop.min_separation
         cand, cur = self._scans[i], self._scans[-1]
-
-        def around(half: int) -> range:
-            return range(max(0, i - half), min(last, i + half + 1))
-
-        ref = self._submap(poses, around(loop.submap_half), cand.kf)
+        ref = self._submap(poses, self._neighbours(i, loop.submap_half), cand.kf)
         res = match(ref, cur.scan, np.zeros(3), pl.window_m, math.pi, self._matcher)
         self.counts["place_candidates"] += 1
         if not pl.gate.accepts(res):
             return False
         recent = self._scans[-pl.verify_scans :]
         local = place(poses[[sc.kf for sc in recent]], [sc.scan for sc in recent], poses[cur.kf])
-        wide = self._submap(poses, around(pl.verify_half), cand.kf)
+        wide = self._submap(poses, self._neighbours(i, pl.verify_half), cand.kf)
         check = match(
             wide, np.concatenate([sc.points for sc in local]), res.pose, 0.0, 0.0, self._matcher
         )
@@ -1089,7 +1086,6 @@ class GtsamSmoother(Localizer):
         window_sigmas of their relative uncertainty; add the factor if the gate accepts
         it (and the chi-squared gate, when on, finds it consistent)."""
         loop = self.config.loop
-        n = len(self._scans)
         cand, cur = self._scans[i], self._scans[-1]
         guess = relative_guess(poses[cand.kf], here)
         rel_cov = self._relative_covariance(cand.kf, cur.kf, guess)
@@ -1099,13 +1095,11 @@ class GtsamSmoother(Localizer):
         wth = float(np.clip(loop.gate.window_sigmas * sth, *loop.gate.window_theta_rad))
         if dist > loop.search_radius_m + wxy:
             return False
-        lo = max(0, i - loop.submap_half)
-        hi = min(n - loop.min_separation, i + loop.submap_half + 1)
-        ref = self._submap(poses, range(lo, hi), cand.kf)
+        ref = self._submap(poses, self._neighbours(i, loop.submap_half), cand.kf)
         res = match(ref, cur.scan, guess, wxy, wth, self._matcher)
         self.counts["loop_candidates"] += 1
         g = loop.gate
-        ok = res.accepted(g.min_inlier_fraction, g.max_conflict_fraction, g.max_ambiguity)
+        ok = g.accepts(res)
         if ok and loop.gate_chi2 > 0:
             d = relative_guess(guess, res.pose)
             s_ = rel_cov + _body_covariance(res.covariance, res.pose[2])
