@@ -62,12 +62,19 @@ the same on every robot and in both datasets checked (1 and 7):
   increments match the Vicon's best ~0.22 s later (the camera's measurements are on the
   Vicon's clock to within 0.03 s), and the robots drive 8 % less far and turn 5 % less
   than commanded.
+- Each robot's camera has its own range scale k: 1.013, 1.052, 1.013, 1.020 for robots
+  1–4 on Dataset 1 and within 0.004 of these on Dataset 7 (`mrclam_fit.fit_range`). With
+  one k for all, robot 2's ranges are ~5 cm long and robots 1 and 3's ~4 cm short, and
+  each robot's map comes out scaled by its own error (robot 2's by 2.4 %).
 
 `calibration="dataset1"` (default) applies the values fitted on Dataset 1's (approximate)
 ground truth, robots 1–4 — so on Dataset 7 they are a held-out calibration (fitted
 on Dataset 7 itself they come out within 0.01 of these: k 1.024, c 0.041 m, delay
-0.20–0.23 s, speed 0.906, turn 0.955): range r = (z − 0.050) / (1.0218·cos b), odometry
-times + 0.22 s, v × 0.917, ω × 0.945. `calibration="none"`: the files' values as they are.
+0.20–0.23 s, speed 0.906, turn 0.955): odometry times + 0.22 s, v × 0.917, ω × 0.945,
+and range r = (z − c) / (k·cos b) with each robot's own k and c (`DATASET1_RANGE`;
+robot 5, without ground truth in Dataset 1, the pooled k 1.0218, c 0.050 m).
+`calibration="dataset1-pooled"`: the pooled k and c for every robot.
+`calibration="none"`: the files' values as they are.
 
 With the calibration the metadata "localizer_settings" also gives the noise levels
 fitted on Dataset 1 ({field path: value}, applied by replay and compare to every
@@ -82,7 +89,7 @@ calibration there are none (the localizers' defaults were fitted to the raw file
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -132,9 +139,11 @@ CREATE_DIAMETER_M = 0.34
 
 
 class CalibrationChoice(Choice):
-    """The barcode camera's calibration: dataset 1's fit, or none (raw measurements)."""
+    """The sensors' calibration: dataset 1's fit with each robot's own range scale and
+    offset, dataset 1's fit pooled over its robots, or none (raw measurements)."""
 
     DATASET1 = "dataset1"
+    DATASET1_POOLED = "dataset1-pooled"
     NONE = "none"
 
 
@@ -161,6 +170,29 @@ DATASET1_CALIBRATION = MrclamCalibration(
     velocity_scale=0.917,
     omega_scale=0.945,
 )
+# Each robot's camera has its own range scale and offset (robot: (range_scale,
+# range_offset_m)), fitted on Dataset 1's approximate ground truth by
+# hardware.datasets.mrclam_fit.fit_range; on Dataset 7 the same fit gives scales within
+# 0.004 of these (offsets 0.02 m larger on every robot). Robot 5 has no ground truth in
+# Dataset 1 and keeps the pooled values.
+DATASET1_RANGE = {
+    1: (1.0133, 0.0252),
+    2: (1.0517, -0.0158),
+    3: (1.0129, 0.0278),
+    4: (1.0202, 0.0861),
+}
+
+
+def sensor_calibration(choice: str, robot: int) -> MrclamCalibration:
+    """The corrections a `calibration` option gives robot `robot` (module docstring)."""
+    if choice == CalibrationChoice.NONE:
+        return MrclamCalibration()
+    if choice == CalibrationChoice.DATASET1 and robot in DATASET1_RANGE:
+        scale, offset = DATASET1_RANGE[robot]
+        return replace(DATASET1_CALIBRATION, range_scale=scale, range_offset_m=offset)
+    return DATASET1_CALIBRATION
+
+
 # The noise of the calibrated values, fitted on Dataset 1 (module docstring); field paths
 # of the localizer configs (slam.*Config), applied where a config has the field.
 DATASET1_LOCALIZER_SETTINGS = {
@@ -176,9 +208,10 @@ DATASET1_LOCALIZER_SETTINGS = {
 @dataclass(frozen=True)
 class MrclamOptions:
     """robot: 1–5. groundtruth: "auto" | "exact" | "approximate" | "none".
-    calibration: "dataset1" (the corrections fitted on Dataset 1, module docstring) |
-    "none" (the files' values). slip: a braking walker's slip put into the odometry, the
-    slip ratio at full "brake" of the inner wheel of every turn
+    calibration: "dataset1" (the corrections fitted on Dataset 1, each robot's own range
+    scale and offset; module docstring) | "dataset1-pooled" (the range's pooled over
+    Dataset 1's robots) | "none" (the files' values). slip: a braking walker's slip put
+    into the odometry, the slip ratio at full "brake" of the inner wheel of every turn
     (`hardware.datasets.synthetic_slip`; 0: none), drawn with slip_seed."""
 
     robot: int = 1
@@ -433,7 +466,7 @@ def _metadata(
         "groundtruth": _groundtruth_metadata(robot.gt_kind, robot.files, options.robot),
         "sensor_calibration": _sensor_calibration_metadata(options.calibration, cal),
     }
-    if options.calibration == "dataset1":
+    if options.calibration != CalibrationChoice.NONE:
         metadata["localizer_settings"] = dict(DATASET1_LOCALIZER_SETTINGS)
     return metadata
 
@@ -444,7 +477,7 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
     folder = require_folder(path, "mrclam")
     _check_robot(folder, options.robot)
     robot = _read_robot(folder, options)
-    cal = DATASET1_CALIBRATION if options.calibration == "dataset1" else MrclamCalibration()
+    cal = sensor_calibration(options.calibration, options.robot)
     odo, ranges = _calibrate(robot, cal)
     rb = robot.sightings
     calibration = WalkerCalibration(
