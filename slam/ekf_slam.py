@@ -46,6 +46,7 @@ from slam.association import (
     nearest_neighbour,
 )
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
+from slam.ekf_smoother import StateSmoother, bridge
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -65,8 +66,10 @@ from slam.trajectory import Trajectory, TrajectoryRecorder
 
 
 class EkfSmoother(Choice):
-    """The EKF's trajectory: Rauch–Tung–Striebel smoothed over the whole run, or filtered."""
+    """The EKF's trajectory: Rauch–Tung–Striebel smoothed over the whole run (the whole
+    state, or the pose alone), or filtered."""
 
+    RTS_FULL = "rts-full"
     RTS = "rts"
     NONE = "none"
 
@@ -82,10 +85,13 @@ class EkfSlamConfig(LocalizerConfig):
     gate_chi2: Mahalanobis gate for an update (13.8 = 99.9 % for 2 DOF); inf disables.
     association: data association for observations without IDs (slam.association.
     AssociationConfig) and `association_enabled` (False: they are not used).
-    smoother: "rts": `trajectory()` is the filtered pose track RTS-smoothed over the
-    odometry (slam.rts, pose-only), so a loop closure's correction also moves the path
-    that led to it and the pipeline rebuilds the map along it (`revises_past`);
-    "none": the filtered poses, each fixed when it was recorded.
+    smoother: "rts-full": `trajectory()` is the whole state (pose and landmarks)
+    RTS-smoothed over the run (slam.ekf_smoother), so every pose takes the final map's
+    landmarks, and the pipeline rebuilds the map along it (`revises_past`); it keeps the
+    state's covariance at every update epoch. "rts": the pose track alone RTS-smoothed
+    over the odometry (slam.rts), which carries a loop closure's correction back along
+    the path that led to it, in constant memory per step; "none": the filtered poses,
+    each fixed when it was recorded.
     absolute: compass / position-fix fusion (slam.absolute.AbsoluteConfig; off by
     default), gated at absolute.gate_prob.
     slip: per-wheel slip estimation (slam.slip.SlipEstimation; `slip.estimate=true`).
@@ -103,7 +109,7 @@ class EkfSlamConfig(LocalizerConfig):
     gate_chi2: float = 13.8
     association_enabled: bool = True
     association: AssociationConfig = field(default_factory=AssociationConfig)
-    smoother: EkfSmoother = EkfSmoother.RTS
+    smoother: EkfSmoother = EkfSmoother.RTS_FULL
     absolute: AbsoluteConfig = field(default_factory=AbsoluteConfig)
     slip: SlipEstimation = field(default_factory=SlipEstimation)
     align_observations: bool = False
@@ -143,7 +149,9 @@ class EkfSlam(Localizer):
             self.counts.update(compass_updates=0, position_updates=0, absolute_gated=0)
         self._gates = {dof: config.absolute.gate(dof) for dof in (1, 2)}
         self.track = TrajectoryRecorder()
-        self.revises_past = config.smoother == "rts"
+        self.revises_past = config.smoother != EkfSmoother.NONE
+        full = config.smoother == EkfSmoother.RTS_FULL
+        self._full = StateSmoother(5 if self._slip else 3) if full else None
         # per recorded step, for the smoother: the pose covariance (after the updates of
         # that time) and the odometry increment that led to it (ds, dθ, q00, q01, q11)
         self._f_cov: list[Cov3] = []
@@ -227,6 +235,15 @@ class EkfSlam(Localizer):
         if not self._stale:
             return
         self._stale = False
+        if self._full is not None:  # a new epoch: the last one's state, the prediction
+            a, b = self._cross
+            top = (
+                (np.r_[self._pose, self._k], self._block)
+                if self._slip
+                else (self._pose, self._cov3)
+            )
+            bk = self._bk if self._slip else None
+            self._full.begin(max(len(self.track) - 1, 0), self._x, self._P, a, b, bk, *top)
         self._x[:3] = self._pose
         p = self._P
         n = 5 if self._slip else 3  # where the landmarks start
@@ -431,7 +448,8 @@ class EkfSlam(Localizer):
         return PoseEstimate(self.track.last_t, np.array(self._pose), np.array(self._cov3))
 
     def trajectory(self) -> Trajectory:
-        """The RTS-smoothed pose track (config.smoother) or the filtered poses."""
+        """The RTS-smoothed pose track (config.smoother: of the whole state, or of the
+        pose alone) or the filtered poses."""
         self._place_held()
         filtered = self.track.trajectory()
         if not self.revises_past or len(filtered) < 2:
@@ -441,7 +459,11 @@ class EkfSlam(Localizer):
             inc = np.array(self._f_inc)
             q = inc[:, [2, 3, 3, 4]].reshape(-1, 2, 2)
             deltas, delta_covs = arc_steps(inc[:, 0], inc[:, 1], q)
-            poses = rts_smooth(filtered.poses, np.array(self._f_cov), deltas, delta_covs)
+            means, covs = filtered.poses, np.array(self._f_cov)
+            if self._full is not None:
+                epochs = self._full.smoothed(self._x, self._P)
+                means, covs = bridge(means, covs, deltas, delta_covs, *epochs)
+            poses = rts_smooth(means, covs, deltas, delta_covs)
             self._path_cache = (key, Trajectory(filtered.t, poses))
         return self._path_cache[1]
 

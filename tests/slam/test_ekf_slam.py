@@ -75,10 +75,12 @@ def _loop_with_biased_odometry(smoother: str):
     return ekf
 
 
-def test_smoother_carries_a_loop_closure_back_along_the_path():
-    """The filtered poses of the drive keep their drift; the RTS-smoothed ones (default)
-    are pulled back toward the truth (y = 0), and the past counts as revised."""
-    smooth, filtered = _loop_with_biased_odometry("rts"), _loop_with_biased_odometry("none")
+@pytest.mark.parametrize("smoother", ["rts-full", "rts"])
+def test_smoother_carries_a_loop_closure_back_along_the_path(smoother):
+    """The filtered poses of the drive keep their drift; the RTS-smoothed ones (of the
+    whole state, the default, or of the pose alone) are pulled back toward the truth
+    (y = 0), and the past counts as revised."""
+    smooth, filtered = _loop_with_biased_odometry(smoother), _loop_with_biased_odometry("none")
     assert smooth.revises_past and not filtered.revises_past and smooth.revision > 0
     t_mid = np.array([2.0, 2.5, 3.0, 3.5])
     lat_s = np.abs(smooth.trajectory().interpolate(t_mid)[:, 1])
