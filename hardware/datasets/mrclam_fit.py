@@ -21,7 +21,6 @@ import numpy as np
 
 from hardware.datasets.base import Dataset, DatasetError
 from hardware.messages import GroundTruthPose, RangeBearing
-from slam.trajectory import Trajectory
 
 
 @dataclass(frozen=True)
@@ -40,12 +39,16 @@ def forward_distances(ds: Dataset, max_bearing_error_rad: float = 0.15):
     gt = list(ds.messages([GroundTruthPose]))
     if len(gt) < 2:
         raise DatasetError(f"{ds.name}: no ground truth to fit the range calibration against")
-    truth = Trajectory(np.array([m.t for m in gt]), np.array([(m.x, m.y, m.theta) for m in gt]))
-    rb = [m for m in ds.messages([RangeBearing]) if truth.t[0] <= m.t <= truth.t[-1]]
-    pose = truth.interpolate(np.array([m.t for m in rb]))
+    t = np.array([m.t for m in gt])
+    rb = [m for m in ds.messages([RangeBearing]) if t[0] <= m.t <= t[-1]]
+    at = np.array([m.t for m in rb])
+    # the true pose at each sighting: linear in x, y and the unwrapped heading
+    x = np.interp(at, t, [m.x for m in gt])
+    y = np.interp(at, t, [m.y for m in gt])
+    th = np.interp(at, t, np.unwrap([m.theta for m in gt]))
     lm = np.array([ds.metadata["landmarks"][str(m.landmark_id)] for m in rb])
-    d = lm - pose[:, :2]
-    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    d = lm - np.column_stack([x, y])
+    c, s = np.cos(th), np.sin(th)
     forward, lateral = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
     bearing = np.array([m.bearing_rad for m in rb])
     right = np.abs(np.angle(np.exp(1j * (np.arctan2(lateral, forward) - bearing))))
