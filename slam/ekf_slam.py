@@ -88,7 +88,8 @@ class EkfSlamConfig(LocalizerConfig):
     smoother: "rts-full": `trajectory()` is the whole state (pose and landmarks)
     RTS-smoothed over the run (slam.ekf_smoother), so every pose takes the final map's
     landmarks, and the pipeline rebuilds the map along it (`revises_past`); it keeps the
-    state's covariance at every update epoch. "rts": the pose track alone RTS-smoothed
+    state's covariance at every update epoch, within smoother_budget_mb (past it, as
+    "rts", and the diagnostics say so). "rts": the pose track alone RTS-smoothed
     over the odometry (slam.rts), which carries a loop closure's correction back along
     the path that led to it, in constant memory per step; "none": the filtered poses,
     each fixed when it was recorded.
@@ -110,12 +111,15 @@ class EkfSlamConfig(LocalizerConfig):
     association_enabled: bool = True
     association: AssociationConfig = field(default_factory=AssociationConfig)
     smoother: EkfSmoother = EkfSmoother.RTS_FULL
+    smoother_budget_mb: float = 256.0
     absolute: AbsoluteConfig = field(default_factory=AbsoluteConfig)
     slip: SlipEstimation = field(default_factory=SlipEstimation)
     align_observations: bool = False
 
     def __post_init__(self) -> None:
         coerce(self, smoother=EkfSmoother)
+        if not self.smoother_budget_mb > 0:
+            raise ValueError(f"smoother_budget_mb must be > 0, got {self.smoother_budget_mb}")
 
 
 class EkfSlam(Localizer):
@@ -151,7 +155,8 @@ class EkfSlam(Localizer):
         self.track = TrajectoryRecorder()
         self.revises_past = config.smoother != EkfSmoother.NONE
         full = config.smoother == EkfSmoother.RTS_FULL
-        self._full = StateSmoother(5 if self._slip else 3) if full else None
+        budget = config.smoother_budget_mb * 1e6
+        self._full = StateSmoother(5 if self._slip else 3, budget) if full else None
         # per recorded step, for the smoother: the pose covariance (after the updates of
         # that time) and the odometry increment that led to it (ds, dθ, q00, q01, q11)
         self._f_cov: list[Cov3] = []
@@ -460,7 +465,7 @@ class EkfSlam(Localizer):
             q = inc[:, [2, 3, 3, 4]].reshape(-1, 2, 2)
             deltas, delta_covs = arc_steps(inc[:, 0], inc[:, 1], q)
             means, covs = filtered.poses, np.array(self._f_cov)
-            if self._full is not None:
+            if self._full is not None and self._full.exceeded is None:
                 epochs = self._full.smoothed(self._x, self._P)
                 means, covs = bridge(means, covs, deltas, delta_covs, *epochs)
             poses = rts_smooth(means, covs, deltas, delta_covs)
@@ -500,6 +505,12 @@ class EkfSlam(Localizer):
         absolute = fused_count(c)
         if c["updates"] == 0 and c["new_landmarks"] == 0 and absolute == 0:
             notes["note"] = "no landmark observations in the map: odometry only"
+        if self._full is not None and self._full.exceeded is not None:
+            notes["note"] = (
+                f"the whole state's smoothing went over smoother_budget_mb "
+                f"({self.config.smoother_budget_mb:g} MB) at step {self._full.exceeded}: "
+                "the pose alone is smoothed"
+            )
         if (slip := self.slip_estimate()) is not None:
             notes.update(slip_diagnostics(*slip))
         return notes

@@ -32,8 +32,11 @@ observation placed inside an odometry step, `align_observations`, makes an epoch
 is anchored at the step recorded before it: up to one odometry message early.)
 
 Memory: one n × n covariance per epoch (n = 3 + 2 · landmarks): MRCLAM's robots, 15
-landmarks and ~2500 epochs, ~22 MB; a run with hundreds of landmarks seen for an hour
-wants the pose-only smoother.
+landmarks and ~2500 epochs, ~22 MB; Victoria Park's hundreds of trees would take
+gigabytes (its whole log went past 512 MB at step 9745). So the epochs are kept within a
+budget (`budget_bytes`): past it they are dropped, `exceeded` holds the step of the
+epoch that would have gone over, and the filter falls back to the pose-only smoother for
+the whole run.
 """
 
 from __future__ import annotations
@@ -63,19 +66,25 @@ class StateSmoother:
     """The epochs of an EKF-SLAM run and their full-state RTS smoothing (module
     docstring). top: the size of the block the odometry moves (3, or 5 with slip)."""
 
-    def __init__(self, top: int) -> None:
+    def __init__(self, top: int, budget_bytes: float) -> None:
         self.top = top
+        self.budget_bytes = budget_bytes
         self.epochs: list[_Epoch] = []
-        self._start: tuple[np.ndarray, np.ndarray] | None = None
+        self.kept_bytes = 0
+        self.exceeded: int | None = None  # the step at which the budget ran out
 
     def begin(self, step, x, p, a, b, bk, top_mean, top_cov) -> None:
         """A new epoch at `step`: (x, p) is the filtered state the prediction started
         from (the last epoch's, or the initial state), a, b, bk the prediction's pose rows
         of F, top_mean / top_cov the predicted top block (all copied)."""
+        if self.exceeded is not None:
+            return
         if self.epochs:
+            self.kept_bytes += x.nbytes + p.nbytes
+            if self.kept_bytes > self.budget_bytes:
+                self.exceeded, self.epochs = step, []
+                return
             self.epochs[-1].x, self.epochs[-1].p = x.copy(), p.copy()
-        else:
-            self._start = (x.copy(), p.copy())
         bk = None if bk is None else np.array(bk, dtype=float)
         self.epochs.append(
             _Epoch(step, a, b, bk, np.array(top_mean, float), np.array(top_cov, float))

@@ -20,7 +20,7 @@ def _linear_slam(seed: int):
     lms = rng.uniform(-3, 3, size=(4, 2))
     x, p = np.zeros(3), np.zeros((3, 3))
     index: dict[int, int] = {}
-    sm = StateSmoother(3)
+    sm = StateSmoother(3, budget_bytes=1e9)
     rows, rhs = [], []  # the batch problem: whitened rows over [poses..., landmarks...]
     n_pose = 3 * (steps + 1)
     w_q, w_r = np.linalg.inv(np.linalg.cholesky(q)), np.linalg.inv(np.linalg.cholesky(r))
@@ -120,3 +120,32 @@ def test_bridge_keeps_the_epochs_poses_and_moves_the_stretches_rigidly():
     )
     out = rts_smooth(means, bcovs, deltas, delta_covs)
     np.testing.assert_allclose(out[[5, 17]], smoothed[[1, 2]], atol=1e-6)
+
+
+def test_over_its_memory_budget_the_pose_alone_is_smoothed_and_it_says_so():
+    """The epochs are kept within smoother_budget_mb; past it the filter falls back to the
+    pose-only smoother (the same trajectory as smoother=rts) and its diagnostics say so."""
+    from hardware.calibration import WalkerCalibration
+    from hardware.messages import EncoderTicks, RangeBearing
+    from slam.base import create
+    from slam.ekf_slam import EkfSlamConfig
+
+    def run(**cfg):
+        cal = WalkerCalibration()
+        ekf = create("ekf-slam", cal, EkfSlamConfig(**cfg))
+        m = cal.metres_per_count
+        for k in range(60):
+            ekf.process(EncoderTicks(0.1 * k, round(0.02 * k / m), round(0.021 * k / m)))
+            ekf.process(RangeBearing(0.1 * k, 1 + k % 3, 2.0 - 0.01 * k, 0.3 * (k % 3 - 1)))
+        return ekf
+
+    small = run(smoother_budget_mb=0.01)  # ~40 epochs of a 9-state covariance fit
+    assert small._full.exceeded is not None and small._full.epochs == []
+    assert "smoother_budget_mb (0.01 MB)" in small.diagnostics()["note"]
+    pose_only = run(smoother="rts")
+    np.testing.assert_allclose(small.trajectory().poses, pose_only.trajectory().poses)
+    full = run()
+    assert full._full.exceeded is None and "note" not in full.diagnostics()
+    assert np.abs(full.trajectory().poses - pose_only.trajectory().poses).max() > 1e-4
+    with pytest.raises(ValueError, match="smoother_budget_mb must be > 0"):
+        EkfSlamConfig(smoother_budget_mb=0)
