@@ -90,7 +90,9 @@ class StateSmoother:
             _Epoch(step, a, b, bk, np.array(top_mean, float), np.array(top_cov, float))
         )
 
-    def smoothed(self, x_last: np.ndarray, p_last: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def smoothed(
+        self, x_last: np.ndarray, p_last: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(steps (E,), smoothed poses (E, 3), filtered poses (E, 3)) of the epochs; x_last,
         p_last: the filter's state now (the last epoch's end)."""
         if not self.epochs:

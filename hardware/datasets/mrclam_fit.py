@@ -33,27 +33,35 @@ class RangeFit:
     rms_m: float
 
 
-def forward_distances(ds: Dataset, max_bearing_error_rad: float = 0.15):
-    """(recorded range, true forward distance r·cos b) of the sightings within the
-    ground truth's span whose bearing agrees with the truth to max_bearing_error_rad."""
+def sighting_geometry(ds: Dataset) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(recorded range, recorded bearing, true forward, true lateral offset [m]) of each
+    landmark sighting within the ground truth's span: the landmark's surveyed position
+    in the frame of the true pose, interpolated at the sighting (linear in x, y and the
+    unwrapped heading)."""
     gt = list(ds.messages([GroundTruthPose]))
     if len(gt) < 2:
         raise DatasetError(f"{ds.name}: no ground truth to fit the range calibration against")
     t = np.array([m.t for m in gt])
     rb = [m for m in ds.messages([RangeBearing]) if t[0] <= m.t <= t[-1]]
     at = np.array([m.t for m in rb])
-    # the true pose at each sighting: linear in x, y and the unwrapped heading
     x = np.interp(at, t, [m.x for m in gt])
     y = np.interp(at, t, [m.y for m in gt])
     th = np.interp(at, t, np.unwrap([m.theta for m in gt]))
-    lm = np.array([ds.metadata["landmarks"][str(m.landmark_id)] for m in rb])
+    lm = np.array([ds.metadata["landmarks"][str(m.landmark_id)] for m in rb]).reshape(-1, 2)
     d = lm - np.column_stack([x, y])
     c, s = np.cos(th), np.sin(th)
     forward, lateral = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
-    bearing = np.array([m.bearing_rad for m in rb])
+    recorded = np.array([(m.range_m, m.bearing_rad) for m in rb]).reshape(-1, 2)
+    return recorded[:, 0], recorded[:, 1], forward, lateral
+
+
+def forward_distances(ds: Dataset, max_bearing_error_rad: float = 0.15):
+    """(recorded range, true forward distance r·cos b) of the sightings within the
+    ground truth's span whose bearing agrees with the truth to max_bearing_error_rad."""
+    z, bearing, forward, lateral = sighting_geometry(ds)
     right = np.abs(np.angle(np.exp(1j * (np.arctan2(lateral, forward) - bearing))))
     right = right < max_bearing_error_rad
-    return np.array([m.range_m for m in rb])[right], forward[right]
+    return z[right], forward[right]
 
 
 def fit_range(

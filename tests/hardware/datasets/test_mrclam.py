@@ -286,16 +286,13 @@ def test_dataset7_robot1_full_import(tmp_path, ds7_robot1):
 def _measurement_errors(ds) -> tuple[Trajectory, np.ndarray, np.ndarray]:
     """The ground truth, and for each range-bearing measurement within its time span the
     range and bearing (wrapped) predicted from the true pose and landmark minus it."""
+    from hardware.datasets.mrclam_fit import sighting_geometry
+
     gt = list(ds.messages([GroundTruthPose]))
-    t = np.array([m.t for m in gt])
-    truth = Trajectory(t, np.array([(m.x, m.y, m.theta) for m in gt]))
-    rb = [m for m in ds.messages([RangeBearing]) if t[0] <= m.t <= t[-1]]
-    p = truth.interpolate(np.array([m.t for m in rb]))
-    lm = np.array([ds.metadata["landmarks"][str(m.landmark_id)] for m in rb])
-    d = lm - p[:, :2]
-    rng = np.hypot(d[:, 0], d[:, 1]) - np.array([m.range_m for m in rb])
-    bearing = np.array([m.bearing_rad for m in rb])
-    brg = np.angle(np.exp(1j * (np.arctan2(d[:, 1], d[:, 0]) - p[:, 2] - bearing)))
+    truth = Trajectory(np.array([m.t for m in gt]), np.array([(m.x, m.y, m.theta) for m in gt]))
+    z, bearing, forward, lateral = sighting_geometry(ds)
+    rng = np.hypot(forward, lateral) - z
+    brg = np.angle(np.exp(1j * (np.arctan2(lateral, forward) - bearing)))
     return truth, rng, brg
 
 
