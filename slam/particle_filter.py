@@ -537,19 +537,23 @@ class ParticleFilter(Localizer):
         total = field_log_likelihood(f.log_p, ox, oy, inv, nx, ny, points, poses)
         return self.pf.beam_weight * total
 
-    def _prior_cov(self) -> np.ndarray:
+    def _prior_cov(self, floor: bool = True) -> np.ndarray:
         """(N, 3, 3) world-frame covariance of each particle's accumulated odometry, with
-        the floor: the odometry frame is the pose the particle was last drawn at."""
-        floor = np.diag(np.square(self.pf.lattice.sigma_floor))
-        anchor_heading = self.particles[:, 2] - self._odo_delta[2]
-        return rotate_covariance(np.array(self._odo_cov) + floor, anchor_heading)
+        the floor (or without it): the odometry frame is the pose the particle was last
+        drawn at."""
+        cov = np.array(self._odo_cov)
+        if floor:
+            cov += np.diag(np.square(self.pf.lattice.sigma_floor))
+        return rotate_covariance(cov, self.particles[:, 2] - self._odo_delta[2])
 
     def _draw_odometry_noise(self) -> None:
         """Proposal "scan": draw the odometry noise accumulated since the last draw."""
         if self.pf.proposal != "scan" or not any(self._odo_cov[i][i] for i in range(3)):
             return
-        cov = self._prior_cov() - np.diag(np.square(self.pf.lattice.sigma_floor))
-        cov += 1e-18 * np.eye(3)  # positive definite for the Cholesky factor
+        cov = self._prior_cov(floor=False)
+        # positive definite for the Cholesky factor: one step's covariance has rank 2
+        jitter = 1e-12 * np.trace(cov, axis1=1, axis2=2) + 1e-18
+        cov += jitter[:, None, None] * np.eye(3)
         self.particles = sample_gaussians(self.particles, cov, self.rng)
         self._reset_odometry()
 

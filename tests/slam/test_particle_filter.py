@@ -20,6 +20,7 @@ from hardware.messages import (
     TagDetection,
     TagDetections,
 )
+from hardware.sim.landmark_drive import DriveNoise, landmark_drive
 from mapping.mapper import OccupancyMapper
 from slam import landmarks
 from slam.base import create
@@ -219,6 +220,24 @@ def test_smoothed_trajectory_corrects_the_stretch_before_the_observations(smooth
     assert np.hypot(*smooth.trajectory().poses[-1, :2] - (4.0, 0.0)) < 0.1
     with pytest.raises(ValueError, match="smoother"):
         ParticleFilterConfig(smoother="fixed-lag")
+
+
+def test_scan_proposal_draws_the_odometry_noise_of_one_step_at_a_sighting():
+    # sightings at every odometry step; the odometry's turn noise a floor with no share of
+    # the speed, so one step's covariance (ds, dθ) maps to a rank-2 pose covariance: its
+    # draw at the next sighting must still be a draw (it was a Cholesky error)
+    lm = {0: (10.0, -2.0), 1: (15.0, 10.0), 2: (3.0, 15.0), 3: (-5.0, 5.0)}
+    drive = DriveNoise(v=0.5, omega=math.radians(10.0), range_m=0.3, bearing_rad=0.035)
+    steps, truth = landmark_drive(lm, 100, 0.1, 1.0, 0.1, drive, seed=0)
+    noise = MotionNoise(velocity_frac=0.16, omega_frac=0.0, omega_floor=0.055)
+    sensor = {"range_sigma_m": 0.3, "range_sigma_frac": 0.0, "bearing_sigma_rad": 0.035}
+    cfg = ParticleFilterConfig(n_particles=100, proposal="scan", noise=noise, **sensor)
+    pf = create("particle-filter", CAL, cfg, landmark_map=lm)
+    for msgs in steps:
+        for m in msgs:
+            pf.process(m)
+    assert pf.diagnostics()["landmark_updates"] == 100
+    assert ate(pf.trajectory(), Trajectory(truth[:, 0], truth[:, 1:]))["ate_rmse_m"] < 0.2
 
 
 def test_an_outlier_does_not_wipe_out_the_right_particles():
