@@ -26,14 +26,16 @@ of odometry), for each particle:
 The estimate is the pose of the most probable particle; the trajectory its whole path,
 read back through resampling (slam.particle_paths), so the past changes whenever another
 particle becomes the most probable (`revises_past`; the pipeline then rebuilds the shared
-map along it). Between two frames a particle follows the odometry, and a frame moves it
-by a correction δ (the drawn pose minus the odometry's prediction): in the trajectory the
-correction is spread over the stretch of odometry that accumulated it, at each odometry
-message in proportion to the odometry variance accumulated by then (the mean of a random
-walk's path given its end point, a Brownian bridge; for x, y and θ separately), so that
-the path does not jump at frames while its poses at the frames stay those of the filter.
-Known landmarks, when given, weight the particles as in the shared-map filter. Particle
-maps use the attached mapper's configuration (grid, depth, scan).
+map along it). Known landmarks, when given, weight the particles as in the shared-map
+filter, after the odometry noise accumulated since the last frame or sighting is drawn
+(as a position fix does). Between two frames or sightings a particle follows the
+odometry, and a frame (or a sighting's draw) moves it by a correction δ (the drawn pose
+minus the odometry's prediction): in the trajectory the correction is spread over the
+stretch of odometry that accumulated it, at each odometry message in proportion to the
+odometry variance accumulated by then (the mean of a random walk's path given its end
+point, a Brownian bridge; for x, y and θ separately), so that the path does not jump at
+frames or sightings while its poses there stay those of the filter. Particle maps use
+the attached mapper's configuration (grid, depth, scan).
 """
 
 from __future__ import annotations
@@ -165,12 +167,13 @@ class GridRbpf(ParticleFilter):
         # the particles' poses at every odometry message and frame (a frame's correction is
         # spread over the odometry messages before it)
         self.paths = ParticlePaths(0.0)
-        # every frame's per-particle corrections, read back through resampling like the
-        # paths, and the odometry variance (x+y, θ) accumulated at each odometry message
-        # since the last frame, with each frame's total
-        self.corrections = ParticlePaths(0.0)
+        # every frame's and sighting's per-particle corrections, read back through
+        # resampling like the paths, and the odometry variance (x+y, θ) accumulated at each
+        # odometry message since the last correction, with each correction's total
+        self.corrections = ParticlePaths(0.0, replace_same_time=False)
         self._variance: list[tuple[float, float, float]] = []  # (t, var xy, var θ)
-        self._segment_totals: list[tuple[float, float]] = []  # at each frame
+        self._segment_totals: list[tuple[float, float]] = []  # at each correction
+        self._correction_t = -math.inf
         self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
         self.counts.update(scan_matches=0, unmatched=0, map_copies=0, turn_starts=0, turn_wins=0)
         threads = config.threads or len(os.sched_getaffinity(0))
@@ -275,11 +278,7 @@ class GridRbpf(ParticleFilter):
         scored = bool(np.any(matched >= 0))
         self.counts["scan_matches"] += int(np.sum(matched == 1))
         self.counts["unmatched"] += int(np.sum(matched == 0))
-        correction = new - self.particles
-        correction[:, 2] = wrap_angle(correction[:, 2])
-        self.corrections.snapshot(msg.t, correction)
-        self._segment_totals.append(self._accumulated())
-        self.particles = new
+        self._correct(msg.t, new)
         self._reset_odometry()
         if scored:
             self._update(log_eta / c.weight_gain, msg.t)
@@ -288,6 +287,31 @@ class GridRbpf(ParticleFilter):
         self._moved = (0.0, 0.0)
         self.revision += 1
         self._snapshot(msg.t)
+
+    def _draw_odometry_noise(self, t: float) -> None:
+        """A landmark sighting's or a position fix's draw of the odometry noise moves the
+        particles as a frame's match does: a correction, spread back the same way."""
+        before = self.particles
+        totals = self._accumulated()
+        super()._draw_odometry_noise(t)
+        if self.particles is not before:
+            new, self.particles = self.particles, before
+            self._correct(t, new, totals)
+            self._snapshot(self._correction_t)
+
+    def _correct(
+        self, t: float, new: np.ndarray, totals: tuple[float, float] | None = None
+    ) -> None:
+        """The particles move to `new` at time t (not before the last recorded pose or
+        correction); the move is kept as a correction with the odometry variance that
+        accumulated it (`totals`, default: since the last correction)."""
+        t = max(t, self.track.last_t, self._correction_t) if self.track else t
+        correction = new - self.particles
+        correction[:, 2] = wrap_angle(correction[:, 2])
+        self.corrections.snapshot(t, correction)
+        self._segment_totals.append(self._accumulated() if totals is None else totals)
+        self._correction_t = t
+        self.particles = new
 
     def _match_params(self) -> tuple[tuple, np.ndarray]:
         """The match's parameters as slam.grid_kernels.propose takes them, and the
@@ -332,7 +356,7 @@ class GridRbpf(ParticleFilter):
         self._variance.append((t, *self._accumulated()))
 
     def _accumulated(self) -> tuple[float, float]:
-        """The odometry variance (x + y, θ) accumulated since the last frame."""
+        """The odometry variance (x + y, θ) accumulated since the last correction."""
         cov = self._odo_cov
         return cov[0][0] + cov[1][1], cov[2][2]
 
@@ -363,16 +387,18 @@ class GridRbpf(ParticleFilter):
         return self._path_cache[1]
 
     def _spread(self, times: np.ndarray, path: np.ndarray, best: int) -> np.ndarray:
-        """`path` (of particle `best`) with each frame's correction spread back (module
-        docstring): at a time s before frame k and after frame k − 1, + f(s)·δ_k with
-        f = accumulated variance at s / accumulated variance at frame k, per axis."""
+        """`path` (of particle `best`) with each correction spread back (module
+        docstring): at a time s before correction k and after correction k − 1, + f(s)·δ_k
+        with f = accumulated variance at s / accumulated variance at correction k, per axis
+        (two corrections at one time: the first is spread, the second, with nothing
+        accumulated, is not)."""
         c_times, deltas = self.corrections.paths(self.particles)
         if not len(c_times):
             return path
         delta = deltas[:, best, :]
         var = np.array(self._variance).reshape(-1, 3)
         totals = np.array(self._segment_totals).reshape(-1, 2)
-        k = np.searchsorted(c_times, times, side="left")  # the next frame at or after s
+        k = np.searchsorted(c_times, times, side="left")  # the next correction at or after s
         inside = (k < len(c_times)) & (times < c_times[np.minimum(k, len(c_times) - 1)])
         k = k[inside]
         v_xy = np.interp(times[inside], var[:, 0], var[:, 1])

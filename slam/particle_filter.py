@@ -446,7 +446,7 @@ class ParticleFilter(Localizer):
         self.counts["unknown_ids"] += len(known) - len(rows) - len(unknown)
         if not rows and not unknown:
             return
-        self._draw_odometry_noise()
+        self._draw_odometry_noise(obs.t)
         c = self.pf
         z = obs.z[rows + unknown]  # (M, 2)
         sr = c.range_sigma_m + c.range_sigma_frac * z[:, 0]  # (M,)
@@ -495,7 +495,7 @@ class ParticleFilter(Localizer):
     def _observe_absolute(self, obs: AbsoluteObservation) -> None:
         """Weight the particles by a compass heading's or a position fix's robust
         likelihood (slam.absolute)."""
-        self._draw_odometry_noise()
+        self._draw_odometry_noise(obs.t)
         self._update(obs.log_likelihood(self.particles, self.pf.absolute), obs.t)
         self.counts[f"{obs.kind}_updates"] += 1
 
@@ -510,7 +510,7 @@ class ParticleFilter(Localizer):
             self._field_t = msg.t
         f = self._field
         if f is None:
-            self._draw_odometry_noise()
+            self._draw_odometry_noise(msg.t)
             return  # the map is still (nearly) empty
         points = self._points_in_range(projection.raw)
         # Only the points that land in mapped cells at the mean pose are scored, for every
@@ -518,7 +518,7 @@ class ParticleFilter(Localizer):
         # favour the particles that pull the frame's new parts onto what is already mapped.
         points = points[f.known[self._cells(self._mean()[None], points, f)[0]]]
         if len(points) < c.min_points:
-            self._draw_odometry_noise()
+            self._draw_odometry_noise(msg.t)
             return
         if c.proposal == "scan":
             self._scan_proposal(points, f, msg.t)
@@ -546,8 +546,9 @@ class ParticleFilter(Localizer):
             cov += np.diag(np.square(self.pf.lattice.sigma_floor))
         return rotate_covariance(cov, self.particles[:, 2] - self._odo_delta[2])
 
-    def _draw_odometry_noise(self) -> None:
-        """Proposal "scan": draw the odometry noise accumulated since the last draw."""
+    def _draw_odometry_noise(self, t: float) -> None:
+        """Proposal "scan": draw the odometry noise accumulated since the last draw, for an
+        observation of time t (grid-rbpf keeps the draw as a correction of its path)."""
         if self.pf.proposal != "scan" or not any(self._odo_cov[i][i] for i in range(3)):
             return
         cov = self._prior_cov(floor=False)

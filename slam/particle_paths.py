@@ -21,12 +21,15 @@ from slam.trajectory import Trajectory
 
 class ParticlePaths:
     """Snapshots of particle poses (float32, at most one per `every_s` seconds) and the
-    resampling events between them."""
+    resampling events between them. replace_same_time=False keeps every snapshot of one
+    time, in order (for per-particle values that add up rather than replace one another,
+    such as grid-rbpf's corrections)."""
 
-    def __init__(self, every_s: float) -> None:
+    def __init__(self, every_s: float, replace_same_time: bool = True) -> None:
         if not every_s >= 0.0:
             raise ValueError(f"snapshot interval must be >= 0 s, got {every_s}")
         self.every_s = float(every_s)
+        self.replace_same_time = replace_same_time
         self._events: list[tuple[float, np.ndarray] | np.ndarray] = []  # snapshot | parents
         self._last_t = -math.inf
         self._last_snapshot = -1  # its index in _events
@@ -35,8 +38,8 @@ class ParticlePaths:
     def snapshot(self, t: float, poses: np.ndarray) -> None:
         """Keep the poses (N×3) at time t if `every_s` has passed since the last one; at
         the time of the last one, they replace it (an observation at the time of an
-        odometry message corrects the poses there)."""
-        if t == self._last_t:
+        odometry message corrects the poses there), unless replace_same_time is False."""
+        if t == self._last_t and self.replace_same_time:
             del self._events[self._last_snapshot]  # resamplings after it stay, before the new one
             self.snapshots -= 1
         elif t - self._last_t < self.every_s or t < self._last_t:

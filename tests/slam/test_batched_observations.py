@@ -32,6 +32,9 @@ def run(name: str, steps, **config):
         ("fastslam", {"version": 1}),
         ("ekf-slam", {}),
         ("particle-filter", {"n_particles": 200}),
+        # the odometry's noise drawn at each sighting (one step's covariance has rank 2)
+        ("particle-filter", {"n_particles": 200, "proposal": "scan"}),
+        ("grid-rbpf", {}),
         ("gtsam", {}),
     ],
 )

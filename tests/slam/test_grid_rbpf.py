@@ -14,11 +14,12 @@ import pytest
 from laser_worlds import ROOM, loop_messages, render_scan
 
 from experiments.config import configure
-from experiments.metrics import relation_errors
+from experiments.metrics import ate, relation_errors
 from experiments.pipeline import Pipeline
 from hardware.calibration import WalkerCalibration
 from hardware.geometry import between
-from hardware.messages import VelocityOdometry
+from hardware.messages import RangeBearing, VelocityOdometry
+from hardware.sim.landmark_drive import DriveNoise, landmark_drive
 from mapping.grid import HitCentroidGrid, OccupancyGrid
 from mapping.scan_points import scan_to_observation
 from slam.base import LOCALIZERS, create
@@ -26,6 +27,7 @@ from slam.grid_kernels import frame_log_likelihood, hill_climb, propose
 from slam.grid_rbpf import GridMatch, GridRbpf, GridRbpfConfig
 from slam.particle_filter import ParticleFilterConfig
 from slam.scan_proposal import gaussian_fit, lattice
+from slam.trajectory import Trajectory
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 INTEL = DATA / "intel_lab" / "intel.gfs.log.gz"
@@ -185,6 +187,34 @@ def test_threads_give_the_same_path():
     for other in runs[1:]:
         np.testing.assert_array_equal(other.trajectory().poses, runs[0].trajectory().poses)
         assert other.diagnostics() == d
+
+
+def test_a_sightings_draw_is_spread_over_the_odometry_before_it():
+    # known landmarks only, seen once a second while the odometry comes every 0.1 s: the
+    # odometry noise drawn at a sighting is a correction, spread back like a frame's (it
+    # was a jump of up to 0.15 m in one step); and the path is better than the odometry
+    lm = {0: (6.0, -1.0), 1: (8.0, 6.0), 2: (2.0, 9.0), 3: (-4.0, 4.0), 4: (-3.0, -3.0)}
+    noise = DriveNoise(v=0.1, omega=0.05, range_m=0.1, bearing_rad=0.02)
+    steps, truth = landmark_drive(lm, 300, 0.1, 1.0, 0.25, noise, max_range_m=8.0, seed=1)
+    msgs = [
+        m for k, s in enumerate(steps) for m in s if k % 10 == 0 or not isinstance(m, RangeBearing)
+    ]
+    sensor = {"range_sigma_m": 0.1, "range_sigma_frac": 0.0, "bearing_sigma_rad": 0.02}
+    gt = Trajectory(truth[:, 0], truth[:, 1:])
+    runs = {}
+    for name, cfg in (("grid-rbpf", GridRbpfConfig(**sensor)), ("dead-reckoning", None)):
+        runs[name] = loc = create(name, WalkerCalibration(), cfg, landmark_map=lm)
+        for m in msgs:
+            loc.process(m)
+    path = runs["grid-rbpf"].trajectory()
+    assert runs["grid-rbpf"].diagnostics()["landmark_updates"] == 30
+    true = gt.interpolate(path.t)
+
+    step = between(path.poses[:-1], path.poses[1:]) - between(true[:-1], true[1:])
+    step_error = np.hypot(step[:, 0], step[:, 1])
+    assert max(step_error) < 0.08
+    dead_reckoning = ate(runs["dead-reckoning"].trajectory(), gt)["ate_rmse_m"]
+    assert ate(path, gt)["ate_rmse_m"] < 0.5 * dead_reckoning
 
 
 def test_resampled_particles_share_a_map_until_they_write_it():

@@ -38,3 +38,17 @@ def test_mean_path_weights_the_current_particles_and_ends_now():
 def test_rejects_a_negative_interval():
     with pytest.raises(ValueError, match="interval"):
         ParticlePaths(-1.0)
+
+
+@pytest.mark.parametrize("replace", [True, False])
+def test_a_second_snapshot_at_one_time_replaces_the_first_or_follows_it(replace):
+    paths = ParticlePaths(every_s=0.0, replace_same_time=replace)
+    paths.snapshot(1.0, np.array([[1.0, 0, 0], [2, 0, 0]]))
+    paths.resampled(np.array([1, 1]))
+    paths.snapshot(1.0, np.array([[3.0, 0, 0], [4, 0, 0]]))
+    t, got = paths.paths(np.zeros((2, 3)))
+    if replace:  # the poses at t = 1 s corrected; the resampling before them stays
+        assert t.tolist() == [1.0] and got[0, :, 0].tolist() == [3.0, 4.0]
+    else:  # both, in order, each read back through the resampling after it
+        assert t.tolist() == [1.0, 1.0]
+        assert got[:, 0, 0].tolist() == [2.0, 3.0] and got[:, 1, 0].tolist() == [2.0, 4.0]
