@@ -78,11 +78,20 @@ particle's own covariances. A sighting farther than `new_prob` from
 every landmark of a particle starts a landmark in a free column of that particle; the
 landmark is provisional until seen `confirm_sightings` times and is dropped (its column
 freed) when it is not within `provisional_max_age_s` — the particle's own version of
-slam.association.Provisional. `landmarks()` gives the best particle's confirmed ones,
+slam.association.Provisional. `landmarks()` gives the best particle's confirmed ones
 with IDs FIRST_ASSOCIATED_ID + column (beside the known IDs); the diagnostics'
 association counts (associated, new, ambiguous, provisional_dropped, provisional_pending)
 are averages over the particles, map_landmarks the size of the best particle's map (as
 `landmarks()`, and as EKF-SLAM's and gtsam's count).
+
+The map (`landmarks()`) of a known ID is the particles' weighted mean of that landmark
+(over the particles that have seen it, their weights renormalised), with the weighted
+mean of their covariances plus the spread of their means: the estimate that goes with
+the weighted-mean path, as EKF-SLAM's map goes with its mean. A single particle's map
+carries that particle's own path noise: with the weight gain, whose weights select
+slowly, the highest-weight particle's map was 3–5× further from the truth than the mean
+(BENCHMARKS.md). Landmarks a particle found itself have no common column, so those are
+the highest-weight particle's.
 
 Resampling: systematic (as `filterpy.monte_carlo.systematic_resample`, but drawing its
 one uniform from the filter's generator so a run is reproducible from `seed`) when the
@@ -658,22 +667,43 @@ class FastSlam(Localizer):
         return self._path_cache[1]
 
     def landmarks(self, full: bool = False) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-        """Landmark id → (mean (2,), covariance 2×2) of the highest-weight particle; with
-        full=True and observation "tag-pose", (u, v, ψ) and its 3×3 covariance."""
+        """Landmark id → (mean (2,), covariance 2×2): of a known ID the particles' weighted
+        mean, of a landmark found without an ID the highest-weight particle's (module
+        docstring); with full=True and observation "tag-pose", (u, v, ψ) and its 3×3
+        covariance."""
         self._flush()
         best = int(np.argmax(self.log_weights))
         k = self.dim if full else 2
-        out = {
-            lid: (self.means[best, col, :k].copy(), self.covs[best, col, :k, :k].copy())
-            for lid, col in self.index.items()
-            if self.seen[best, col]
-        }
+        ids = [lid for lid, col in self.index.items() if self.seen[:, col].any()]
+        means, covs = self._weighted_map(np.array([self.index[i] for i in ids], dtype=int), k)
+        out = {lid: (means[j], covs[j]) for j, lid in enumerate(ids)}
         for col in np.flatnonzero(self._confirmed()[best]):
             out[FIRST_ASSOCIATED_ID + int(col)] = (
                 self.means[best, col, :k].copy(),
                 self.covs[best, col, :k, :k].copy(),
             )
         return out
+
+    def _weighted_map(self, cols: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(C, k) weighted means and (C, k, k) covariances of landmark columns `cols` over
+        the particles that have seen each (ψ, the third component, a circular mean)."""
+        seen = self.seen[:, cols]  # (N, C)
+        w = np.where(seen, self._w[:, None], 0.0)
+        total = w.sum(axis=0)
+        w = np.where(total > 0.0, w / np.where(total > 0.0, total, 1.0), seen / seen.sum(axis=0))
+        m = self.means[:, cols, :k]  # (N, C, k)
+        mean = np.einsum("nc,nck->ck", w, m)
+        if k == 3:
+            mean[:, 2] = np.arctan2(
+                np.einsum("nc,nc->c", w, np.sin(m[..., 2])),
+                np.einsum("nc,nc->c", w, np.cos(m[..., 2])),
+            )
+        d = np.where(seen[..., None], m - mean, 0.0)
+        if k == 3:
+            d[..., 2] = wrap_angle(d[..., 2])
+        cov = np.einsum("nc,ncij->cij", w, self.covs[:, cols, :k, :k])
+        cov += np.einsum("nc,nci,ncj->cij", w, d, d)
+        return mean, cov
 
     def _confirmed(self) -> np.ndarray:
         """(N, L): the landmarks each particle found itself and saw often enough."""

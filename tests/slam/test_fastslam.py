@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from helpers import numerical_jacobian
 
-from experiments.metrics import ate, landmark_rmse
+from experiments.metrics import ate, landmark_rmse, trajectory_alignment
 from hardware.calibration import WalkerCalibration
 from hardware.frames import invert_transform, make_transform
 from hardware.log import read_log
@@ -18,6 +18,7 @@ from hardware.messages import (
     TagDetection,
     TagDetections,
 )
+from hardware.sim.landmark_drive import DriveNoise, landmark_drive
 from slam import fastslam_kernels as kernels
 from slam.base import available, create
 from slam.fastslam import (
@@ -31,7 +32,7 @@ from slam.fastslam import (
 )
 from slam.landmarks import from_metadata
 from slam.measurement import range_bearing, range_bearing_jacobians
-from slam.motion import apply_increment, increment_jacobians
+from slam.motion import MotionNoise, apply_increment, increment_jacobians
 from slam.trajectory import Trajectory
 
 
@@ -331,15 +332,43 @@ def test_synthetic_world_tracks_pose_and_maps_tags(synthetic, version, observati
     lm_err = np.array([np.hypot(*(mean - tags[i])) for i, (mean, _) in lms.items()])
     # measured: mean 1–3 cm, worst 3–4.5 cm; a first sighting is 2–5 cm uncertain
     assert lm_err.mean() < 0.06 and lm_err.max() < 0.12
-    # converged: hundreds of sightings shrank every landmark's σ to ~3 mm (from 2–3 cm at
-    # first sight; conditioned on each particle's path, so smaller than the real error)
-    assert max(np.sqrt(np.linalg.eigvalsh(cov).max()) for _, cov in lms.values()) < 0.01
+    # converged: hundreds of sightings shrank every landmark's σ to ~3 mm in each particle
+    # (from 2–3 cm at first sight; conditioned on its path); the map's covariance adds the
+    # particles' spread (measured: largest σ 2.5–11 mm, nearer the real error)
+    sigma = [np.sqrt(np.linalg.eigvalsh(cov).max()) for _, cov in lms.values()]
+    assert max(sigma) < 0.02
     d = fs.diagnostics()
     assert d["new_landmarks"] == 8 and d["updates"] > 900 and d["without_id"] == 0
     if observation == "tag-pose":
         yaws = {i: mean[2] for i, (mean, _) in fs.landmarks(full=True).items()}
         true_yaw = 2 * np.pi * np.arange(8) / 8 + np.pi
         assert max(abs(math.remainder(yaws[i] - true_yaw[i], 2 * math.pi)) for i in yaws) < 0.05
+
+
+def test_the_map_is_the_particles_weighted_mean():
+    # issue 13's kind of drive among five landmarks, at the default weight gain (weights
+    # that select slowly): each particle's map carries its own path noise, their weighted
+    # mean (the estimate that goes with the weighted-mean path) does not; measured (seed
+    # 0): 0.046 m against the highest-weight particle's 0.152 m (seeds 1, 2: 0.042 / 0.346,
+    # 0.046 / 0.087)
+    lm = {0: (10.0, -2.0), 1: (15.0, 10.0), 2: (3.0, 15.0), 3: (-5.0, 5.0), 4: (-5.0, 20.0)}
+    drive = DriveNoise(v=0.5, omega=math.radians(10.0), range_m=0.3, bearing_rad=0.035)
+    steps, truth = landmark_drive(lm, 300, 0.1, 1.0, 0.1, drive, seed=0)
+    noise = MotionNoise(velocity_frac=0.16, omega_frac=0.0, omega_floor=0.055)
+    sensor = {"range_sigma_m": 0.3, "range_sigma_frac": 0.0, "bearing_sigma_rad": 0.035}
+    cfg = FastSlamConfig(noise=noise, **sensor)
+    fs = replay(create("fastslam", WalkerCalibration(), cfg), [m for s in steps for m in s])
+    gt = Trajectory(truth[:, 0], truth[:, 1:])
+    align = trajectory_alignment(fs.trajectory(), gt)
+    got = fs.landmarks()
+    assert sorted(got) == sorted(lm)
+    seen = fs.seen[:, fs.index[3]]
+    w = np.exp(fs.log_weights[seen]) / np.exp(fs.log_weights[seen]).sum()
+    np.testing.assert_allclose(got[3][0], w @ fs.means[seen, fs.index[3], :2], atol=1e-12)
+    best = int(np.argmax(fs.log_weights))
+    best_map = {i: fs.means[best, col, :2] for i, col in fs.index.items()}
+    error = landmark_rmse({i: mean for i, (mean, _) in got.items()}, lm, align)
+    assert error < 0.08 and error < 0.6 * landmark_rmse(best_map, lm, align)
 
 
 @pytest.mark.parametrize("version", [1, 2])
