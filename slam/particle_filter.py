@@ -32,7 +32,8 @@ frames particles move by the odometry alone while the odometry's covariance accu
 odometry prior × scan likelihood (`slam.scan_proposal`, the improved proposal of
 GMapping on the one shared map) and weights it by that product's mass. A frame that
 cannot be scored (empty map, too few points in mapped cells) and a landmark update first
-draw the accumulated odometry noise, as "motion" would have.
+draw the odometry noise of the steps since the last draw, each step's along its arc as
+"motion" would have (with the same seed, the same particles).
 
 Landmark likelihood is robust: each observation's density is the mixture
 (1 − ε)·N(z; ẑ, R) + ε·u of the Gaussian and a uniform u = 1/(outlier_range_m·2π) over
@@ -82,7 +83,7 @@ import numpy as np
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
-from hardware.geometry import wrap_angle
+from hardware.geometry import compose, inverse, wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
 from mapping.grid import GridExtent
@@ -291,6 +292,15 @@ def _cholesky_2x2(cov: np.ndarray) -> tuple[float, float, float]:
     return l00, l10, math.sqrt(max(c - l10 * l10, 0.0))
 
 
+def _drawn_step(
+    poses: np.ndarray, ds: float, dtheta: float, cov: np.ndarray, z: np.ndarray
+) -> np.ndarray:
+    """poses (N, 3) moved along one odometry step's arc with its noise drawn: (ds, dθ) +
+    L·z, L the Cholesky factor of its 2×2 covariance, z (2, N) standard normals."""
+    l00, l10, l11 = _cholesky_2x2(cov)
+    return apply_increment(poses, ds + l00 * z[0], dtheta + l10 * z[0] + l11 * z[1])
+
+
 @dataclass(frozen=True, eq=False)
 class _Field:
     """Per-cell log-likelihood of an obstacle point and whether the grid knows the cell,
@@ -342,6 +352,7 @@ class ParticleFilter(Localizer):
         # the pose they were drawn at, and its covariance (slam.motion.propagate)
         self._odo_delta: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._odo_cov = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+        self._steps: list[tuple[float, float, np.ndarray]] = []  # each (ds, dθ, 2×2 cov)
         self.counts: dict[str, Any] = {
             "landmark_updates": 0,
             "landmark_observations": 0,
@@ -419,12 +430,10 @@ class ParticleFilter(Localizer):
             self._odo_delta, self._odo_cov, _ = propagate(
                 self._odo_delta, self._odo_cov, inc.ds, inc.dtheta, inc.cov
             )
+            self._steps.append((inc.ds, inc.dtheta, inc.cov))
         else:
-            l00, l10, l11 = _cholesky_2x2(inc.cov)
             z = self.rng.standard_normal((2, len(self.particles)))
-            ds = inc.ds + l00 * z[0]
-            dth = inc.dtheta + l10 * z[0] + l11 * z[1]
-            self.particles = apply_increment(self.particles, ds, dth)
+            self.particles = _drawn_step(self.particles, inc.ds, inc.dtheta, inc.cov, z)
         self._moved = (self._moved[0] + abs(inc.ds), self._moved[1] + abs(inc.dtheta))
         if self._rts:
             f, g = increment_jacobians(float(self._delta[2]), inc.ds, inc.dtheta)
@@ -537,28 +546,31 @@ class ParticleFilter(Localizer):
         total = field_log_likelihood(f.log_p, ox, oy, inv, nx, ny, points, poses)
         return self.pf.beam_weight * total
 
-    def _prior_cov(self, floor: bool = True) -> np.ndarray:
+    def _prior_cov(self) -> np.ndarray:
         """(N, 3, 3) world-frame covariance of each particle's accumulated odometry, with
-        the floor (or without it): the odometry frame is the pose the particle was last
-        drawn at."""
-        cov = np.array(self._odo_cov)
-        if floor:
-            cov += np.diag(np.square(self.pf.lattice.sigma_floor))
-        return rotate_covariance(cov, self.particles[:, 2] - self._odo_delta[2])
+        the floor: the odometry frame is the pose the particle was last drawn at."""
+        floor = np.diag(np.square(self.pf.lattice.sigma_floor))
+        anchor_heading = self.particles[:, 2] - self._odo_delta[2]
+        return rotate_covariance(np.array(self._odo_cov) + floor, anchor_heading)
 
     def _draw_odometry_noise(self, t: float) -> None:
-        """Proposal "scan": draw the odometry noise accumulated since the last draw, for an
-        observation of time t (grid-rbpf keeps the draw as a correction of its path)."""
+        """Proposal "scan": draw the odometry noise of every step since the last draw, for
+        an observation of time t (grid-rbpf keeps the draw as a correction of its path), as
+        "motion" would have drawn it: each step's own noise along its arc, from the pose
+        of the last draw. Over a long stretch without observations the cloud bends with
+        the heading's uncertainty, which one Gaussian of the accumulated covariance does
+        not (MRCLAM robot 3's 40 s without a landmark: BENCHMARKS.md)."""
         if self.pf.proposal != "scan" or not any(self._odo_cov[i][i] for i in range(3)):
             return
-        cov = self._prior_cov(floor=False)
-        # positive definite for the Cholesky factor: one step's covariance has rank 2
-        jitter = 1e-12 * np.trace(cov, axis1=1, axis2=2) + 1e-18
-        cov += jitter[:, None, None] * np.eye(3)
-        self.particles = sample_gaussians(self.particles, cov, self.rng)
+        poses = compose(self.particles, inverse(np.array(self._odo_delta)))
+        z = self.rng.standard_normal((len(self._steps), 2, len(poses)))
+        for (ds, dtheta, cov), z_step in zip(self._steps, z, strict=True):
+            poses = _drawn_step(poses, ds, dtheta, cov, z_step)
+        self.particles = poses
         self._reset_odometry()
 
     def _reset_odometry(self) -> None:
+        self._steps = []
         self._odo_delta = (0.0, 0.0, 0.0)
         self._odo_cov = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 

@@ -240,6 +240,34 @@ def test_scan_proposal_draws_the_odometry_noise_of_one_step_at_a_sighting():
     assert ate(pf.trajectory(), Trajectory(truth[:, 0], truth[:, 1:]))["ate_rmse_m"] < 0.2
 
 
+def test_scan_proposal_draws_a_long_stretch_as_the_motion_model_does():
+    # 40 s of odometry without a sighting, then one: the scan proposal draws each step's
+    # noise along its arc from the last drawn pose, so with the same seed its particles are
+    # the motion proposal's; one Gaussian of the accumulated covariance could not bend
+    # with the heading's uncertainty (MRCLAM robot 3's 40 s without a landmark)
+    lm = {0: (10.0, -2.0), 1: (3.0, 15.0)}
+    drive = DriveNoise(v=0.2, omega=0.1, range_m=0.1, bearing_rad=0.02)
+    steps, _ = landmark_drive(lm, 400, 0.1, 1.0, 0.1, drive, seed=0)
+    msgs = [
+        m for k, s in enumerate(steps) for m in s if k == 399 or not isinstance(m, RangeBearing)
+    ]
+    clouds = []
+    for proposal in ("motion", "scan"):
+        pf = create(
+            "particle-filter",
+            CAL,
+            ParticleFilterConfig(n_particles=300, proposal=proposal),
+            landmark_map=lm,
+        )
+        for m in msgs:
+            pf.process(m)
+        pf.estimate()  # the sighting held is used
+        assert pf.diagnostics()["landmark_updates"] == 1
+        clouds.append(pf.particles)
+    np.testing.assert_allclose(clouds[1], clouds[0], rtol=0, atol=1e-9)
+    assert np.std(clouds[0][:, 2]) > 0.2  # a wide, bent cloud: σθ over 40 s
+
+
 def test_an_outlier_does_not_wipe_out_the_right_particles():
     """Robust landmark likelihood: among correct observations of two tags, one with a
     wrong ID (π off in bearing, as MRCLAM's misread barcodes) leaves the estimate at the
