@@ -26,15 +26,15 @@ of odometry), for each particle:
 The estimate is the pose of the most probable particle; the trajectory its whole path,
 read back through resampling (slam.particle_paths), so the past changes whenever another
 particle becomes the most probable (`revises_past`; the pipeline then rebuilds the shared
-map along it). Known landmarks, when given, weight the particles as in the shared-map
-filter, after the odometry noise accumulated since the last frame or sighting is drawn
-(as a position fix does). Between two frames or sightings a particle follows the
-odometry, and a frame (or a sighting's draw) moves it by a correction δ (the drawn pose
-minus the odometry's prediction): in the trajectory the correction is spread over the
-stretch of odometry that accumulated it, at each odometry message in proportion to the
-odometry variance accumulated by then (the mean of a random walk's path given its end
-point, a Brownian bridge; for x, y and θ separately), so that the path does not jump at
-frames or sightings while its poses there stay those of the filter. Particle maps use
+map along it). Known landmarks (and position fixes), when given, weight the particles as
+in the shared-map filter, once the odometry noise of the steps since the last frame or
+sighting is drawn (slam.particle_filter). Between two frames or sightings a particle
+follows the odometry, and a frame (or a sighting's draw) moves it by a correction δ (the
+drawn pose minus the odometry's prediction): in the trajectory the correction is spread
+over the stretch of odometry that accumulated it, at each odometry message in proportion
+to the odometry variance accumulated by then (the mean of a random walk's path given its
+end point, a Brownian bridge; for x, y and θ separately), so that the path does not jump
+at frames or sightings while its poses there stay those of the filter. Particle maps use
 the attached mapper's configuration (grid, depth, scan).
 """
 
