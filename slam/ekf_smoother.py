@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from hardware.geometry import wrap_angle
+from hardware.geometry import between, compose, wrap_angle
 
 
 @dataclass
@@ -157,13 +157,7 @@ def bridge(
     seg = np.searchsorted(steps, np.arange(len(means)), side="right") - 1
     inside = seg >= 0
     k = seg[inside]
-    rot = wrap_angle(smoothed[k, 2] - filtered_at[k, 2])
-    c, s = np.cos(rot), np.sin(rot)
-    dx = means[inside, 0] - filtered_at[k, 0]
-    dy = means[inside, 1] - filtered_at[k, 1]
-    means[inside, 0] = smoothed[k, 0] + c * dx - s * dy
-    means[inside, 1] = smoothed[k, 1] + s * dx + c * dy
-    means[inside, 2] = wrap_angle(means[inside, 2] + rot)
+    means[inside] = compose(smoothed[k], between(filtered_at[k], means[inside]))
     anchor = np.zeros(len(means), dtype=np.bool_)
     anchor[steps] = True
     d, q = np.asarray(deltas, dtype=float), np.asarray(delta_covs, dtype=float)

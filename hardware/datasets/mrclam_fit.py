@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hardware.datasets.base import Dataset, DatasetError
+from hardware.geometry import between, wrap_angle
 from hardware.messages import GroundTruthPose, RangeBearing
 
 
@@ -48,9 +49,8 @@ def sighting_geometry(ds: Dataset) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     y = np.interp(at, t, [m.y for m in gt])
     th = np.interp(at, t, np.unwrap([m.theta for m in gt]))
     lm = np.array([ds.metadata["landmarks"][str(m.landmark_id)] for m in rb]).reshape(-1, 2)
-    d = lm - np.column_stack([x, y])
-    c, s = np.cos(th), np.sin(th)
-    forward, lateral = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+    seen = between(np.column_stack([x, y, th]), np.column_stack([lm, np.zeros(len(lm))]))
+    forward, lateral = seen[:, 0], seen[:, 1]
     recorded = np.array([(m.range_m, m.bearing_rad) for m in rb]).reshape(-1, 2)
     return recorded[:, 0], recorded[:, 1], forward, lateral
 
@@ -59,8 +59,7 @@ def forward_distances(ds: Dataset, max_bearing_error_rad: float = 0.15):
     """(recorded range, true forward distance r·cos b) of the sightings within the
     ground truth's span whose bearing agrees with the truth to max_bearing_error_rad."""
     z, bearing, forward, lateral = sighting_geometry(ds)
-    right = np.abs(np.angle(np.exp(1j * (np.arctan2(lateral, forward) - bearing))))
-    right = right < max_bearing_error_rad
+    right = np.abs(wrap_angle(np.arctan2(lateral, forward) - bearing)) < max_bearing_error_rad
     return z[right], forward[right]
 
 

@@ -10,6 +10,7 @@ from datasets_testdata import assert_same_messages, data_dir, write_mrclam, writ
 
 from experiments.metrics import ate
 from hardware.datasets import DatasetError, import_to_log, open_dataset
+from hardware.geometry import wrap_angle
 from hardware.log import read_log
 from hardware.messages import GroundTruthPose, RangeBearing, VelocityOdometry
 from slam.base import create
@@ -292,7 +293,7 @@ def _measurement_errors(ds) -> tuple[Trajectory, np.ndarray, np.ndarray]:
     truth = Trajectory(np.array([m.t for m in gt]), np.array([(m.x, m.y, m.theta) for m in gt]))
     z, bearing, forward, lateral = sighting_geometry(ds)
     rng = np.hypot(forward, lateral) - z
-    brg = np.angle(np.exp(1j * (np.arctan2(lateral, forward) - bearing)))
+    brg = wrap_angle(np.arctan2(lateral, forward) - bearing)
     return truth, rng, brg
 
 
