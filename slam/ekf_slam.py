@@ -46,7 +46,6 @@ from slam.association import (
     nearest_neighbour,
 )
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
-from slam.ekf_smoother import StateSmoother, bridge
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -60,8 +59,9 @@ from slam.measurement import (
     range_bearing_jacobians,
 )
 from slam.motion import Cov3, Increment, MotionNoise, OdometryModel, propagate, split_increment
-from slam.rts import arc_steps, rts_smooth
+from slam.rts import rts_smooth
 from slam.slip import SlipEstimation, predict_with_slip, slip_diagnostics
+from slam.state_smoother import StateSmoother, StepOdometry, bridge
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 
@@ -86,7 +86,7 @@ class EkfSlamConfig(LocalizerConfig):
     association: data association for observations without IDs (slam.association.
     AssociationConfig) and `association_enabled` (False: they are not used).
     smoother: "rts-full": `trajectory()` is the whole state (pose and landmarks)
-    RTS-smoothed over the run (slam.ekf_smoother), so every pose takes the final map's
+    RTS-smoothed over the run (slam.state_smoother), so every pose takes the final map's
     landmarks, and the pipeline rebuilds the map along it (`revises_past`); it keeps the
     state's covariance at every update epoch, within smoother_budget_mb (past it, as
     "rts", and the diagnostics say so). "rts": the pose track alone RTS-smoothed
@@ -160,8 +160,7 @@ class EkfSlam(Localizer):
         # per recorded step, for the smoother: the pose covariance (after the updates of
         # that time) and the odometry increment that led to it (ds, dθ, q00, q01, q11)
         self._f_cov: list[Cov3] = []
-        self._f_inc: list[tuple[float, float, float, float, float]] = []
-        self._inc = [0.0, 0.0, 0.0, 0.0, 0.0]
+        self._f_inc = StepOdometry()
         self._path_cache: tuple[tuple[int, int], Trajectory] | None = None
         self._held: list[LandmarkObservation] = []  # align_observations: not yet used
         self.sightings = Sightings(calibration)
@@ -204,13 +203,7 @@ class EkfSlam(Localizer):
         self._cross[0] += a
         self._cross[1] += b
         if self.revises_past:
-            self._step_increment(ds, dth, q)
-
-    def _step_increment(self, ds: float, dth: float, q: np.ndarray) -> None:
-        """Add to the odometry of the step being recorded (for the smoother): one
-        increment per step, or the parts of one split around an observation."""
-        add = (ds, dth, float(q[0, 0]), float(q[0, 1]), float(q[1, 1]))
-        self._inc = [a + b for a, b in zip(self._inc, add, strict=True)]
+            self._f_inc.add(ds, dth, q)
 
     def _predict_slip(self, inc) -> None:
         """The prediction with slip estimation: pose and k together (slam.slip), and the
@@ -233,7 +226,7 @@ class EkfSlam(Localizer):
         self._cross[0] += float(step.f[0, 2])
         self._cross[1] += float(step.f[1, 2])
         if self.revises_past:
-            self._step_increment(step.ds, step.dtheta, step.q)
+            self._f_inc.add(step.ds, step.dtheta, step.q)
 
     def _sync(self) -> None:
         """Bring the full state up to date with the predictions since the last update."""
@@ -429,12 +422,9 @@ class EkfSlam(Localizer):
             return
         if len(self.track) > n:
             self._f_cov.append(self._cov3)
-            self._f_inc.append(tuple(self._inc))
         else:  # the same time again: that step, moved further
             self._f_cov[-1] = self._cov3
-            prev = self._f_inc[-1]
-            self._f_inc[-1] = (prev[0] + self._inc[0], prev[1] + self._inc[1], *self._inc[2:])
-        self._inc = [0.0, 0.0, 0.0, 0.0, 0.0]
+        self._f_inc.close(len(self.track) > n)
 
     def _place_held(self) -> None:
         """An output is asked for: the sightings not yet complete taken as they are, and
@@ -461,9 +451,7 @@ class EkfSlam(Localizer):
             return filtered
         key = (self.revision, len(filtered))
         if self._path_cache is None or self._path_cache[0] != key:
-            inc = np.array(self._f_inc)
-            q = inc[:, [2, 3, 3, 4]].reshape(-1, 2, 2)
-            deltas, delta_covs = arc_steps(inc[:, 0], inc[:, 1], q)
+            deltas, delta_covs = self._f_inc.deltas()
             means, covs = filtered.poses, np.array(self._f_cov)
             if self._full is not None and self._full.exceeded is None:
                 epochs = self._full.smoothed(self._x, self._P)

@@ -19,9 +19,10 @@ particles numpy's per-call cost was most of the step):
     pending      (N, 3, 3)     2.0 only: motion covariance since the particle's last sample
 
 Memory is N·L·(D + D²) floats for the map (100 particles × 32 tags × 6 = 150 kB) and one
-pose per odometry message for the trajectory; no per-particle path is kept (the estimate
-is the weighted mean pose, recorded after every odometry message and revised in place
-when an observation at that time moves it, as EKF-SLAM does). Resampling copies the
+pose per odometry message for the filtered track (the weighted mean pose, revised in
+place when an observation at that time moves it, as EKF-SLAM does); the smoothers keep
+the particles' poses every path_snapshot_s (slam.particle_paths) and the state's moments
+at every update (below, "Smoothing"). Resampling copies the
 landmark arrays by fancy indexing, O(N·L) each time (no shared landmark trees): fine for
 tens of tags, the thing to change for maps of thousands of landmarks.
 
@@ -93,6 +94,24 @@ slowly, the highest-weight particle's map was 3–5× further from the truth tha
 (BENCHMARKS.md). Landmarks a particle found itself have no common column, so those are
 the highest-weight particle's.
 
+Smoothing (`smoother="rts-full"`, the default). Each pose is filtered against its
+particles' maps of the time; the final map, built from all the sightings, is better, and
+the ancestry paths (`"ancestry"`) carry one particle's motion noise in the old past. The
+particles at each update are summarised by their weighted moments over the state [pose
+(and slip coefficients), the known IDs' landmarks (u, v, and ψ with "tag-pose")]: the
+mean, and the covariance of the particles' spread plus their motion covariance not yet
+sampled (2.0) and their landmark covariances. Between two updates the same particles
+only move, so the prediction's relation to the state before is the particles' own
+cross-covariance (statistical linearisation). The Rauch–Tung–Striebel pass of
+slam.state_smoother (EKF-SLAM's, in its form for moments) then carries the final map
+back to every update's pose, and the odometry between updates is bridged as EKF-SLAM's.
+MRCLAM dataset 7, robots 1–5 (seed 0): ATE 0.138 m by the ancestry paths, 0.115 m smoothed
+(filtered means 0.248 m; EKF-SLAM's filtered means 0.148 m, smoothed 0.064 m); issue 13's
+landmark drive: 0.079–0.106 m against 0.100–0.130 m (tests/slam/test_fastslam.py). It
+needs the landmarks' columns common to all particles: once sightings without an ID are
+used, and past smoother_budget_mb, the trajectory is the ancestry paths' (kept alongside)
+and the diagnostics say so.
+
 Resampling: systematic (as `filterpy.monte_carlo.systematic_resample`, but drawing its
 one uniform from the filter's generator so a run is reproducible from `seed`) when the
 effective sample size 1 / Σ w² falls below resample_threshold · N.
@@ -106,7 +125,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hardware.calibration import WalkerCalibration
-from hardware.choices import coerce
+from hardware.choices import Choice, coerce
 from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
@@ -134,12 +153,15 @@ from slam.motion import (
     split_increment,
 )
 from slam.particle_paths import ParticlePaths
+from slam.rts import rts_smooth
 from slam.slip import SlipEstimation, increment_with_slip, slip_diagnostics
+from slam.state_smoother import StateSmoother, StepOdometry, bridge, bridge_covariances
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 __all__ = [
     "FastSlam",
     "FastSlamConfig",
+    "FastSlamSmoother",
     "landmark_from_tag_pose",
     "landmark_from_tag_pose_jacobians",
     "propagate_linearised",
@@ -150,6 +172,15 @@ __all__ = [
 
 # 99.9 % quantiles of χ² with 2 and 3 degrees of freedom (scipy.stats.chi2.ppf(0.999, k)).
 CHI2_999 = {2: 13.815510557964274, 3: 16.26623619623813}
+
+
+class FastSlamSmoother(Choice):
+    """FastSLAM's trajectory: its whole state RTS-smoothed over the particles' moments,
+    the particles' ancestry paths, or the filtered means."""
+
+    RTS_FULL = "rts-full"
+    ANCESTRY = "ancestry"
+    NONE = "none"
 
 
 @dataclass(frozen=True)
@@ -180,11 +211,19 @@ class FastSlamConfig(LocalizerConfig):
     heading error (BENCHMARKS.md, "Simulated course"). 1: the textbook weights. 20 was
     chosen on simulated trials of seeds 1–2 (from 1, 3, 5, 10, 20, 40).
     seed: seed of the numpy Generator behind every random draw.
-    smoothed_trajectory: `trajectory()` returns the weighted mean of the particles' whole
-    paths, read back through resampling (slam.particle_paths), sampled every
-    path_snapshot_s; the past then changes with every update (`revises_past`), and the
-    pipeline rebuilds the map along it. False: the filtered mean at each odometry message,
-    which jumps whenever the weights shift.
+    smoother: what `trajectory()` is (the past then changes with every update:
+    `revises_past`, and the pipeline rebuilds the map along it):
+    "rts-full" (default): the whole state — pose (and slip coefficients) and the known
+    IDs' landmarks — RTS-smoothed over the run (slam.state_smoother) from the particles'
+    weighted moments at each update: every pose takes the final map, as EKF-SLAM's
+    smoother gives it (module docstring, "Smoothing"); "ancestry": the weighted mean of
+    the particles' whole paths, read back through resampling (slam.particle_paths),
+    sampled every path_snapshot_s, whose old past is one particle's path with that
+    particle's motion noise; "none": the filtered mean at each odometry message, which
+    jumps whenever the weights shift.
+    smoother_budget_mb: memory for "rts-full"'s moments (one n × n covariance per update,
+    n = 3 + 2 · landmarks); past it, and once sightings without an ID are used (each
+    particle's own landmarks have no common column), the trajectory is "ancestry"'s.
     slip: per-wheel slip estimation (slam.slip.SlipEstimation; `slip.estimate=true`):
     each particle carries its own (k_left, k_right), drawn from the prior and moved by
     the random walk with every odometry message; it moves the particle by its slip-
@@ -211,7 +250,8 @@ class FastSlamConfig(LocalizerConfig):
     gate_chi2: float | None = None
     resample_threshold: float = 0.5
     seed: int = 0
-    smoothed_trajectory: bool = True
+    smoother: FastSlamSmoother = FastSlamSmoother.RTS_FULL
+    smoother_budget_mb: float = 256.0
     path_snapshot_s: float = 0.1
     weight_gain: float = 20.0
     slip: SlipEstimation = field(default_factory=SlipEstimation)
@@ -224,7 +264,9 @@ class FastSlamConfig(LocalizerConfig):
             raise ValueError(f"version must be 1 or 2, got {self.version!r}")
         if int(self.n_particles) != self.n_particles or self.n_particles < 1:
             raise ValueError(f"n_particles must be a positive integer, got {self.n_particles!r}")
-        coerce(self, observation=ObservationModel)
+        coerce(self, observation=ObservationModel, smoother=FastSlamSmoother)
+        if not self.smoother_budget_mb > 0:
+            raise ValueError(f"smoother_budget_mb must be > 0, got {self.smoother_budget_mb}")
         if not self.weight_gain >= 1.0:
             raise ValueError(f"weight_gain must be >= 1, got {self.weight_gain}")
         if not 0.0 <= self.resample_threshold <= 1.0:
@@ -407,7 +449,7 @@ class FastSlam(Localizer):
         self.n_eff = float(n)
         self.n_eff_min = float(n)
         self.track = TrajectoryRecorder()
-        self.revises_past = bool(config.smoothed_trajectory)
+        self.revises_past = config.smoother != FastSlamSmoother.NONE
         self.paths = ParticlePaths(config.path_snapshot_s)
         self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
         self.sightings = Sightings(calibration)
@@ -416,6 +458,14 @@ class FastSlam(Localizer):
         self.k: np.ndarray | None = None  # (N, 2) each particle's slip coefficients
         if slip.estimate:
             self.k = np.asarray(slip.k_prior) + slip.k_sigma * self.rng.standard_normal((n, 2))
+        # "rts-full": the moments at every update, and the odometry of every step
+        self._full: StateSmoother | None = None
+        self._full_stopped = ""  # why the run fell back to the ancestry paths
+        if config.smoother == FastSlamSmoother.RTS_FULL:
+            top = 3 if self.k is None else 5
+            self._full = StateSmoother(top, config.smoother_budget_mb * 1e6, self.dim)
+            self._steps = StepOdometry()
+            self._end = self._moments()  # the state the next prediction starts from
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
@@ -458,6 +508,11 @@ class FastSlam(Localizer):
             ds, dth, _ = increment_with_slip(inc, self.k, self.calibration.track_m)
             walk = self.config.slip.random_walk_per_s * math.sqrt(max(inc.dt, 0.0))
             self.k = self.k + walk * self.rng.standard_normal(self.k.shape)
+        if self._full is not None:  # the step's odometry (with slip, the weighted mean's)
+            if self.k is None:
+                self._steps.add(ds, dth, q)
+            else:
+                self._steps.add(float(self._w @ ds), float(self._w @ dth), q)
         if self.config.version == 1:
             e = self.rng.standard_normal((self.n, 2)) @ _cholesky2(q).T
             self.poses = apply_increment(self.poses, ds + e[:, 0], dth + e[:, 1])
@@ -527,9 +582,59 @@ class FastSlam(Localizer):
             self._update(obs.t, items, np.array(unknown).reshape(-1, 2))
 
     def _update(self, t: float, items: list[tuple[int, np.ndarray]], unknown: np.ndarray) -> None:
+        """The landmark observations of one time (`_update_particles`); for "rts-full" an
+        epoch of the state smoother: the prediction into it from the particles' moments
+        before, the filtered state after."""
+        if self._full is not None and len(unknown):
+            self._stop_full("sightings without an ID were used")
+        pred = self._prediction() if self._full is not None else None
+        if self._update_particles(t, items, unknown) and self._full is not None:
+            x, p, _ = self._end
+            self._full.begin_sampled(max(len(self.track) - 1, 0), x, p, *pred)
+            if self._full.exceeded is not None:
+                budget = self.config.smoother_budget_mb
+                self._stop_full(f"its moments went over smoother_budget_mb ({budget:g} MB)")
+            else:
+                self._end = self._moments()
+
+    def _stop_full(self, why: str) -> None:
+        """The whole-state smoothing stops for the run: the trajectory is the ancestry's."""
+        self._full, self._steps, self._end = None, None, None
+        self._full_stopped = why
+
+    def _top_rows(self) -> np.ndarray:
+        """The particles' top of the state (N, 3 or 5): pose, and k with slip estimation."""
+        return self.poses if self.k is None else np.concatenate([self.poses, self.k], axis=1)
+
+    def _moments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The filtered state for the smoother: (mean, covariance, the particles'
+        deviations (N, n)) of [top, the known IDs' landmarks in the order first seen]: the
+        weighted moments of the particles, with their motion covariance not yet sampled
+        (2.0) and their landmark covariances added (compiled: kernels.state_moments)."""
+        top = self._top_rows()
+        cols = np.fromiter(self.index.values(), dtype=np.int64, count=len(self.index))
+        size = top.shape[1] + self.dim * len(cols)
+        x, p, dev = np.empty(size), np.empty((size, size)), np.empty((self.n, size))
+        kernels.state_moments(top, self.pending, self.means, self.covs, cols, self._w, x, p, dev)
+        return x, p, dev
+
+    def _prediction(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The prediction since the last update, from the same particles moved on: (the
+        predicted top, Cov(state then, top now) (n × t), Cov(top now, state now) (t × n))
+        (compiled: kernels.prediction_moments)."""
+        _, _, before = self._end
+        top = self._top_rows()
+        t, n = top.shape[1], before.shape[1]
+        mean, cross, rows = np.empty(t), np.empty((n, t)), np.empty((t, n))
+        kernels.prediction_moments(top, self.pending, self._w, before, mean, cross, rows)
+        return mean, cross, rows
+
+    def _update_particles(
+        self, t: float, items: list[tuple[int, np.ndarray]], unknown: np.ndarray
+    ) -> bool:
         """The landmark observations of one time: FastSLAM's four steps (compiled:
         slam.fastslam_kernels; the random draws here). items: (ID, z) of known landmarks;
-        unknown (M, 2): sightings without an ID."""
+        unknown (M, 2): sightings without an ID. False when none was used."""
         n, gain = self.n, self.config.weight_gain
         cols = np.array([self._column(lid) for lid, _ in items], dtype=np.int64)
         z = np.array([zz for _, zz in items]).reshape(-1, self.dim)
@@ -560,7 +665,7 @@ class FastSlam(Localizer):
                 a.new_threshold(), gain, v2, logw, cols_u, status,
             )  # fmt: skip
         if not used.any() and not m:
-            return
+            return False
         if v2:  # 2. sample the poses from the proposal (1.0 sampled them with the motion)
             kernels.sample(mu, sigma, self.rng.standard_normal((n, 3)), self.poses)
             self.pending[:] = 0.0
@@ -580,6 +685,7 @@ class FastSlam(Localizer):
         self._normalise(logw)  # 4.
         self.track.amend(self._mean_pose())
         self.revision += 1
+        return True
 
     def _found_landmarks(self, t: float, cols: np.ndarray, status: np.ndarray) -> None:
         """Book-keeping of the landmarks the particles found themselves: sightings
@@ -638,9 +744,12 @@ class FastSlam(Localizer):
         return np.array([float(w @ p[:, 0]), float(w @ p[:, 1]), th])
 
     def _record(self, t: float) -> None:
+        n = len(self.track)
         self.track.record(t, self._mean_pose())
         if self.revises_past:
             self.paths.snapshot(t, self.poses)
+        if self._full is not None:
+            self._steps.close(len(self.track) > n)
 
     # -- outputs ----------------------------------------------------------------------
     def estimate(self) -> PoseEstimate:
@@ -656,15 +765,33 @@ class FastSlam(Localizer):
         return PoseEstimate(t, mean, _symmetric(cov))
 
     def trajectory(self) -> Trajectory:
-        """The smoothed path (config.smoothed_trajectory) or the filtered means."""
+        """The smoothed path (config.smoother) or the filtered means."""
         self._flush()
         if not self.revises_past or not self.track:
             return self.track.trajectory()
         key = (self.revision, self.track.last_t)
         if self._path_cache is None or self._path_cache[0] != key:
-            traj = self.paths.mean_path(self._w, self.track.last_t, self.poses)
+            if self._full is not None:
+                traj = self._smoothed()
+            else:
+                traj = self.paths.mean_path(self._w, self.track.last_t, self.poses)
             self._path_cache = (key, traj)
         return self._path_cache[1]
+
+    def _smoothed(self) -> Trajectory:
+        """ "rts-full": the epochs' smoothed poses, and the odometry between them
+        (slam.state_smoother.bridge; before the first update the covariance grows from
+        the known start)."""
+        filtered = self.track.trajectory()
+        deltas, delta_covs = self._steps.deltas()
+        covs = np.zeros((len(deltas), 3, 3))
+        start = np.zeros(len(deltas), dtype=np.bool_)
+        start[0] = True
+        bridge_covariances(filtered.poses, deltas, delta_covs, start, covs)
+        x, p, _ = self._end
+        epochs = self._full.smoothed(x, p)
+        means, covs = bridge(filtered.poses, covs, deltas, delta_covs, *epochs)
+        return Trajectory(filtered.t, rts_smooth(means, covs, deltas, delta_covs))
 
     def landmarks(self, full: bool = False) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Landmark id → (mean (2,), covariance 2×2): of a known ID the particles' weighted
@@ -737,6 +864,11 @@ class FastSlam(Localizer):
             notes["provisional_pending"] = round(float(pending.sum()) / self.n, 1)
         notes["n_eff"] = self.n_eff
         notes["n_eff_min"] = self.n_eff_min
+        if self._full_stopped:
+            notes["note"] = (
+                f"the whole state's smoothing stopped ({self._full_stopped}): "
+                "the trajectory is the ancestry paths"
+            )
         if (
             self.counts["updates"] == 0
             and self.counts["new_landmarks"] == 0

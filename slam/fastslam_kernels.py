@@ -403,3 +403,109 @@ def associate(
             det = inverse(s, d, s_inv)
             logw[i] += -0.5 * (gate + math.log(det) + d * LOG_TWO_PI) / gain
             status[o, i] = 2 if d2_min[o] > new_gate else 0
+
+
+# -- the particles' moments for the whole-state smoother (slam.state_smoother) ---------------
+
+
+@njit(cache=True, nogil=True)
+def _top_mean(top, w, mean) -> None:
+    """The weighted mean of the particles' top rows (N, t) into mean (t,), circular in θ."""
+    s = c = 0.0
+    for j in range(top.shape[1]):
+        mean[j] = 0.0
+    for i in range(top.shape[0]):
+        for j in range(top.shape[1]):
+            mean[j] += w[i] * top[i, j]
+        s += w[i] * math.sin(top[i, 2])
+        c += w[i] * math.cos(top[i, 2])
+    mean[2] = math.atan2(s, c)
+
+
+@njit(cache=True, nogil=True)
+def state_moments(top, pending, means, covs, cols, w, x, p, dev) -> None:
+    """The filtered state [top (t), landmarks cols (D each)] of the particles: its weighted
+    mean x (n,) (circular in θ and, D = 3, in the tags' yaw), the particles' deviations
+    from it dev (N, n) (angles wrapped), and p (n, n) = their weighted covariance plus the
+    weighted mean of the motion covariances `pending` (on the pose) and of the landmarks'
+    covariances (on their blocks)."""
+    n_p, t = top.shape
+    d = means.shape[2]
+    n = t + d * len(cols)
+    _top_mean(top, w, x)
+    for m in range(len(cols)):
+        col = cols[m]
+        for k in range(d):
+            acc = s = c = 0.0
+            if k == 2:  # a tag's yaw
+                for i in range(n_p):
+                    s += w[i] * math.sin(means[i, col, k])
+                    c += w[i] * math.cos(means[i, col, k])
+                acc = math.atan2(s, c)
+            else:
+                for i in range(n_p):
+                    acc += w[i] * means[i, col, k]
+            x[t + d * m + k] = acc
+    for i in range(n_p):
+        for j in range(t):
+            dev[i, j] = top[i, j] - x[j]
+        dev[i, 2] = wrap(dev[i, 2])
+        for m in range(len(cols)):
+            for k in range(d):
+                v = means[i, cols[m], k] - x[t + d * m + k]
+                dev[i, t + d * m + k] = wrap(v) if k == 2 else v
+    for a in range(n):
+        for b in range(n):
+            p[a, b] = 0.0
+    for i in range(n_p):
+        for a in range(n):
+            va = w[i] * dev[i, a]
+            for b in range(a, n):
+                p[a, b] += va * dev[i, b]
+        for a in range(3):
+            for b in range(a, 3):
+                p[a, b] += w[i] * pending[i, a, b]
+        for m in range(len(cols)):
+            o = t + d * m
+            for a in range(d):
+                for b in range(a, d):
+                    p[o + a, o + b] += w[i] * covs[i, cols[m], a, b]
+    for a in range(n):
+        for b in range(a):
+            p[a, b] = p[b, a]
+
+
+@njit(cache=True, nogil=True)
+def prediction_moments(top, pending, w, before, mean, cross, rows) -> None:
+    """The prediction since the last update, of the same particles moved on: the
+    predicted top's weighted mean (t,), cross (n, t) = Cov(state then, top now) from the
+    deviations `before` (N, n) of the state then, and rows (t, n) = Cov(top now, state
+    now) (the top block with the motion covariances `pending`, the landmarks' part the
+    cross-covariance's: they do not move)."""
+    n_p, t = top.shape
+    n = before.shape[1]
+    _top_mean(top, w, mean)
+    for a in range(n):
+        for j in range(t):
+            cross[a, j] = 0.0
+    for a in range(t):
+        for b in range(t):
+            rows[a, b] = 0.0
+    dt = np.empty(t)
+    for i in range(n_p):
+        for j in range(t):
+            dt[j] = top[i, j] - mean[j]
+        dt[2] = wrap(dt[2])
+        for a in range(n):
+            va = w[i] * before[i, a]
+            for j in range(t):
+                cross[a, j] += va * dt[j]
+        for a in range(t):
+            for b in range(t):
+                rows[a, b] += w[i] * dt[a] * dt[b]
+        for a in range(3):
+            for b in range(3):
+                rows[a, b] += w[i] * pending[i, a, b]
+    for a in range(t, n):
+        for j in range(t):
+            rows[j, a] = cross[a, j]

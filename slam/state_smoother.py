@@ -1,4 +1,5 @@
-"""Rauch–Tung–Striebel smoothing of EKF-SLAM's whole state (`smoother="rts-full"`).
+"""Rauch–Tung–Striebel smoothing of a SLAM filter's whole state: EKF-SLAM's
+(`smoother="rts-full"`) and FastSLAM's particles summarised by their moments.
 
 The pose-only smoother (slam.rts) treats the landmark updates of different times as
 independent. In SLAM they are not: a landmark mapped while the heading was wrong drags
@@ -8,20 +9,31 @@ against the map of their time are 0.19 m off on robot 1, and 0.06 m off when rel
 in the final map). Smoothing the whole state carries the final map back to every pose.
 
 An *epoch* is what the filter does between two predictions: the updates of one time.
-At its start the filter's full state is brought up to date (EkfSlam._sync); `begin`
-records then the filtered state of the epoch before (x_e, P_e, unchanged since its last
-update) and the prediction from it: the pose rows of the transition F (the rest of F
-is the identity: landmarks are static; x, y depend on θ through a, b, and on the slip
-coefficients through B) and the predicted top block (pose, or pose and slip), which
-the filter computed with its own process noise. Then, backwards from the last epoch
-(x^s = the filtered state),
+At its start the filter records (`begin`) the filtered state of the epoch before (x_e,
+P_e, unchanged since its last update) and the prediction from it: the predicted top of
+the state (the pose, or the pose and what moves with it: slip coefficients) x⁻, and
+how the prediction relates to x_e, as either
 
-    x⁻_{e+1} = x_e with its top replaced by the predicted one,  P⁻ = F P_e Fᵀ (top block
-               replaced by the predicted one),   G_e = P_e Fᵀ (P⁻)⁻¹,
+- the pose rows of a linearised transition F (EKF-SLAM: `begin`; the rest of F is the
+  identity: landmarks are static; x, y depend on θ through a, b, and on the slip
+  coefficients through B) with the predicted top block, which the filter computed with
+  its own process noise; or
+- the moments themselves (FastSLAM: `begin_sampled`, from its particles: statistical
+  linearisation), the cross-covariance C = Cov(x_e, top⁻) and the rows of the predicted
+  covariance Cov(top⁻, x⁻) — the landmarks do not move, so these are all that differ
+  from P_e. For the linear form, C = P_e Fᵀ's top columns and the rows (F P_e Fᵀ)'s,
+  with the top block replaced by the predicted one.
+
+Then, backwards from the last epoch (x^s = the filtered state),
+
+    x⁻_{e+1} = x_e with its top replaced by the predicted one,  P⁻ = P_e with the top's
+               rows and columns replaced,  G_e = C (P⁻)⁻¹ (C = P_e with the top columns
+               replaced),
     x^s_e = x_e + G_e (x^s_{e+1}[:n_e] − x⁻_{e+1}),
 
 where x^s_{e+1}[:n_e] leaves out the landmarks first seen in epoch e + 1 (the smoothed
-marginal of the older ones). The heading differences are wrapped.
+marginal of the older ones). The heading differences are wrapped (and a tag landmark's
+yaw, `landmark_dim=3`).
 
 Between two epochs the walker moved on odometry alone: `bridge` takes each stretch's
 filtered poses moved rigidly onto the smoothed pose of the epoch that starts it, their
@@ -35,7 +47,7 @@ Memory: one n × n covariance per epoch (n = 3 + 2 · landmarks): MRCLAM's robot
 landmarks and ~2500 epochs, ~22 MB; Victoria Park's hundreds of trees would take
 gigabytes (its whole log went past 512 MB at step 9745). So the epochs are kept within a
 budget (`budget_bytes`): past it they are dropped, `exceeded` holds the step of the
-epoch that would have gone over, and the filter falls back to the pose-only smoother for
+epoch that would have gone over, and the filter falls back to its other smoother for
 the whole run.
 """
 
@@ -48,27 +60,34 @@ import numpy as np
 from numba import njit
 
 from hardware.geometry import between, compose, wrap_angle
+from slam.rts import arc_steps
 
 
 @dataclass
 class _Epoch:
     step: int  # the trajectory's step the epoch's updates corrected
-    a: float  # ∂x/∂θ and ∂y/∂θ of the prediction into this epoch
-    b: float
-    bk: np.ndarray | None  # ∂(x, y, θ)/∂k (3 × 2) with slip estimation
     top_mean: np.ndarray  # the predicted top of the state (pose, or pose and k)
-    top_cov: np.ndarray
+    # linear (EKF-SLAM): the prediction's pose rows of F and the predicted top block
+    a: float = 0.0  # ∂x/∂θ and ∂y/∂θ of the prediction into this epoch
+    b: float = 0.0
+    bk: np.ndarray | None = None  # ∂(x, y, θ)/∂k (3 × 2) with slip estimation
+    top_cov: np.ndarray | None = None
+    # sampled (FastSLAM): Cov(x_e, top⁻) (n_e × t) and Cov(top⁻, x⁻) (t × n_e)
+    cross: np.ndarray | None = None
+    pred_rows: np.ndarray | None = None
     x: np.ndarray | None = None  # the filtered state at the epoch's end (set later)
     p: np.ndarray | None = None
 
 
 class StateSmoother:
-    """The epochs of an EKF-SLAM run and their full-state RTS smoothing (module
-    docstring). top: the size of the block the odometry moves (3, or 5 with slip)."""
+    """The epochs of a run and their full-state RTS smoothing (module docstring). top:
+    the size of the block the odometry moves (3, or 5 with slip); landmark_dim: 2 (u, v)
+    or 3 (u, v and a tag's yaw, wrapped like the heading)."""
 
-    def __init__(self, top: int, budget_bytes: float) -> None:
+    def __init__(self, top: int, budget_bytes: float, landmark_dim: int = 2) -> None:
         self.top = top
         self.budget_bytes = budget_bytes
+        self.landmark_dim = landmark_dim
         self.epochs: list[_Epoch] = []
         self.kept_bytes = 0
         self.exceeded: int | None = None  # the step at which the budget ran out
@@ -77,18 +96,27 @@ class StateSmoother:
         """A new epoch at `step`: (x, p) is the filtered state the prediction started
         from (the last epoch's, or the initial state), a, b, bk the prediction's pose rows
         of F, top_mean / top_cov the predicted top block (all copied)."""
+        bk = None if bk is None else np.array(bk, dtype=float)
+        top_cov = np.array(top_cov, dtype=float)
+        self._add(x, p, _Epoch(step, np.array(top_mean, float), a, b, bk, top_cov))
+
+    def begin_sampled(self, step, x, p, top_mean, cross, pred_rows) -> None:
+        """A new epoch at `step` from moments: (x, p) the filtered state the prediction
+        started from, top_mean the predicted top, cross = Cov(x, top⁻) (n × top) and
+        pred_rows = Cov(top⁻, x⁻) (top × n; its first block the predicted top's)."""
+        cross, rows = np.array(cross, dtype=float), np.array(pred_rows, dtype=float)
+        self._add(x, p, _Epoch(step, np.array(top_mean, float), cross=cross, pred_rows=rows))
+
+    def _add(self, x, p, epoch: _Epoch) -> None:
         if self.exceeded is not None:
             return
         if self.epochs:
             self.kept_bytes += x.nbytes + p.nbytes
             if self.kept_bytes > self.budget_bytes:
-                self.exceeded, self.epochs = step, []
+                self.exceeded, self.epochs = epoch.step, []
                 return
             self.epochs[-1].x, self.epochs[-1].p = x.copy(), p.copy()
-        bk = None if bk is None else np.array(bk, dtype=float)
-        self.epochs.append(
-            _Epoch(step, a, b, bk, np.array(top_mean, float), np.array(top_cov, float))
-        )
+        self.epochs.append(epoch)
 
     def smoothed(
         self, x_last: np.ndarray, p_last: np.ndarray
@@ -113,23 +141,74 @@ class StateSmoother:
         """One backward step: the smoothed state of an epoch from its filtered (x, p),
         the prediction `move` into the next epoch and that epoch's smoothed state."""
         n, t = len(x), self.top
+        cross, rows = self._prediction(p, move)
+        p_pred = p.copy()
+        p_pred[:t] = rows
+        p_pred[:, :t] = rows.T
+        p_pred[np.diag_indices(n)] += 1e-12 * np.trace(p_pred) / n + 1e-18
+        c = p.copy()
+        c[:, :t] = cross
+        x_pred = x.copy()
+        x_pred[:t] = move.top_mean
+        angles = self._angles(n)
+        d = nxt[:n] - x_pred
+        d[angles] = wrap_angle(d[angles])
+        out = x + c @ np.linalg.solve(p_pred, d)  # G d, G = C (P⁻)⁻¹
+        out[angles] = wrap_angle(out[angles])
+        return out
+
+    def _prediction(self, p: np.ndarray, move: _Epoch) -> tuple[np.ndarray, np.ndarray]:
+        """(C's top columns, P⁻'s top rows) of the prediction into `move`."""
+        if move.cross is not None:
+            return move.cross, move.pred_rows
+        n, t = len(p), self.top
         f_top = np.zeros((3, n))  # the pose rows of F − I
         f_top[0, 2], f_top[1, 2] = move.a, move.b
         if move.bk is not None:
             f_top[:, 3:5] = move.bk
-        fp = p.copy()
-        fp[:3] += f_top @ p  # F P
-        p_pred = fp.copy()
-        p_pred[:, :3] += fp @ f_top.T  # F P Fᵀ
-        p_pred[:t, :t] = move.top_cov
-        p_pred[np.diag_indices(n)] += 1e-12 * np.trace(p_pred) / n + 1e-18
-        x_pred = x.copy()
-        x_pred[:t] = move.top_mean
-        d = nxt[:n] - x_pred
-        d[2] = wrap_angle(d[2])
-        out = x + fp.T @ np.linalg.solve(p_pred, d)  # G d, G = P Fᵀ (P⁻)⁻¹
-        out[2] = wrap_angle(out[2])
-        return out
+        fp = p[:t].copy()  # the top rows of F P
+        fp[:3] += f_top @ p
+        rows = fp.copy()  # the top rows of F P Fᵀ
+        rows[:, :3] += fp @ f_top.T
+        rows[:, :t] = move.top_cov
+        return fp.T, rows
+
+    def _angles(self, n: int) -> np.ndarray:
+        """The state's angles: the heading, and a tag landmark's yaw."""
+        if self.landmark_dim != 3:
+            return np.array([2])
+        return np.r_[2, np.arange(self.top + 2, n, 3)]
+
+
+class StepOdometry:
+    """The odometry of each recorded step, for the smoothers: the increments (ds, dθ and
+    their 2×2 covariance q) since the step before, summed over the messages, or the parts
+    of one split around an observation, that made it."""
+
+    def __init__(self) -> None:
+        self._open = [0.0, 0.0, 0.0, 0.0, 0.0]  # ds, dθ, q00, q01, q11
+        self._steps: list[list[float]] = []
+
+    def __len__(self) -> int:
+        return len(self._steps)
+
+    def add(self, ds: float, dtheta: float, q: np.ndarray) -> None:
+        """Add an increment to the step being recorded."""
+        add = (ds, dtheta, float(q[0, 0]), float(q[0, 1]), float(q[1, 1]))
+        self._open = [a + b for a, b in zip(self._open, add, strict=True)]
+
+    def close(self, new_step: bool) -> None:
+        """The step was recorded: a new one, or the last one again (the same time)."""
+        if new_step or not self._steps:
+            self._steps.append(self._open)
+        else:
+            self._steps[-1] = [a + b for a, b in zip(self._steps[-1], self._open, strict=True)]
+        self._open = [0.0, 0.0, 0.0, 0.0, 0.0]
+
+    def deltas(self) -> tuple[np.ndarray, np.ndarray]:
+        """(deltas (K, 3), their covariances (K, 3, 3)) of the steps (slam.rts.arc_steps)."""
+        inc = np.array(self._steps, dtype=float).reshape(-1, 5)
+        return arc_steps(inc[:, 0], inc[:, 1], inc[:, [2, 3, 3, 4]].reshape(-1, 2, 2))
 
 
 def bridge(

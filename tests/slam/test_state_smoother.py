@@ -1,12 +1,12 @@
-"""Full-state RTS smoothing of EKF-SLAM (slam.ekf_smoother): on a linear-Gaussian SLAM
+"""Full-state RTS smoothing of EKF-SLAM (slam.state_smoother): on a linear-Gaussian SLAM
 problem it equals the batch least-squares solution; the bridge between epochs keeps the
 epochs' poses; on MRCLAM the poses take the final map."""
 
 import numpy as np
 import pytest
 
-from slam.ekf_smoother import StateSmoother, bridge
 from slam.rts import arc_steps, rts_smooth
+from slam.state_smoother import StateSmoother, bridge
 
 
 def _linear_slam(seed: int):
@@ -21,6 +21,7 @@ def _linear_slam(seed: int):
     x, p = np.zeros(3), np.zeros((3, 3))
     index: dict[int, int] = {}
     sm = StateSmoother(3, budget_bytes=1e9)
+    moments = StateSmoother(3, budget_bytes=1e9)  # the same predictions, as moments
     rows, rhs = [], []  # the batch problem: whitened rows over [poses..., landmarks...]
     n_pose = 3 * (steps + 1)
     w_q, w_r = np.linalg.inv(np.linalg.cholesky(q)), np.linalg.inv(np.linalg.cholesky(r))
@@ -45,6 +46,9 @@ def _linear_slam(seed: int):
         sm.begin(k, x, p, a, b, None, top_mean, top_cov)
         big = np.eye(len(x))
         big[:3, :3] = f
+        pred_rows = (big @ p @ big.T)[:3]
+        pred_rows[:, :3] = top_cov
+        moments.begin_sampled(k, x, p, top_mean, (p @ big.T)[:, :3], pred_rows)
         p = big @ p @ big.T
         p[:3, :3] = top_cov
         x = x.copy()
@@ -76,17 +80,20 @@ def _linear_slam(seed: int):
     a_mat, b_vec = np.vstack(rows), np.concatenate(rhs)
     # landmarks never seen would make it singular: every one is seen (2 of 4, 40 times)
     sol = np.linalg.lstsq(a_mat, b_vec, rcond=None)[0]
-    return sm, sol[:n_pose].reshape(-1, 3), x, p
+    return sm, sol[:n_pose].reshape(-1, 3), x, p, moments
 
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_full_state_rts_equals_the_batch_solution_of_a_linear_slam_problem(seed):
-    sm, batch, x, p = _linear_slam(seed)
+    sm, batch, x, p, moments = _linear_slam(seed)
     steps, smoothed, filtered = sm.smoothed(x, p)
     assert list(steps) == list(range(1, 41))
     np.testing.assert_allclose(smoothed, batch[1:], atol=1e-6)
     # and it is not the filter's answer
     assert np.abs(filtered[:-1] - batch[1:-1]).max() > 0.05
+    # the prediction given by its moments (FastSLAM's form: Cov(x_e, top⁻) and the
+    # predicted covariance's top rows) smooths the same
+    np.testing.assert_allclose(moments.smoothed(x, p)[1], batch[1:], atol=1e-6)
 
 
 def test_bridge_keeps_the_epochs_poses_and_moves_the_stretches_rigidly():
