@@ -112,6 +112,8 @@ class StateSmoother:
             return
         if self.epochs:
             self.kept_bytes += x.nbytes + p.nbytes
+            if epoch.cross is not None:
+                self.kept_bytes += epoch.cross.nbytes + epoch.pred_rows.nbytes
             if self.kept_bytes > self.budget_bytes:
                 self.exceeded, self.epochs = epoch.step, []
                 return
