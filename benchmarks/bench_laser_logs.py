@@ -11,10 +11,10 @@ change that should not matter, which shows how far a log's ATE moves for no reas
 On these logs it moves far (acapulco 0.20 / 0.29 / 0.34 m, edmonton 0.47 / 0.82 m on
 2026-12-02, before odometry_walk's k₄ became 0.1), so a change to the back end is an
 improvement only when it beats that spread on most logs, not when it wins one run
-(BENCHMARKS.md, "Laser logs: a log's spread"). The BLAS kernels move them as far: numpy's
-OpenBLAS picks its kernels by CPU, and the SkylakeX ones (a CPU with AVX-512) give other
-numbers than the Haswell ones (csail 0.126 against 0.163 m on 2026-12-03); run under
-OPENBLAS_CORETYPE=Haswell to compare with BENCHMARKS.md's tables before that day.
+(BENCHMARKS.md, "Laser logs: a log's spread"). The BLAS kernels moved them as far
+(numpy's OpenBLAS picks its kernels by CPU: csail 0.126 m with the SkylakeX ones, 0.163
+with Haswell's) until the scan path's small matrix products and solves were written out
+(hardware.small_linalg, 2026-12-03): now any kernels give the same numbers.
 
 With --odometry it replays nothing and instead fits each log's odometry noise against
 GMapping's poses: between consecutive scans, the heading error of the integrated

@@ -129,6 +129,7 @@ from hardware.choices import Choice, coerce
 from hardware.geometry import compose, wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
+from hardware.small_linalg import congruence, dot, eigh2, matmul, solve
 from slam.absolute import (
     AbsoluteConfig,
     AbsoluteObservation,
@@ -473,7 +474,7 @@ def _body_covariance(cov: np.ndarray, theta: float) -> np.ndarray:
     space (x, y in the matched pose's own frame, θ), as BetweenFactorPose2 expects."""
     c, s = math.cos(theta), math.sin(theta)
     a = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    out = a @ cov @ a.T
+    out = congruence(a, cov)
     return 0.5 * (out + out.T)
 
 
@@ -646,17 +647,17 @@ class GtsamSmoother(Localizer):
             added = np.diag([vxy, vxy, kth * abs(ds) + kturn * abs(dth)])
         f, g = increment_jacobians(self._delta[2], ds, dth)
         if jk is not None:
-            self._delta_jk = f @ self._delta_jk + g @ jk
+            self._delta_jk = matmul(f, self._delta_jk) + matmul(g, jk)
         self._delta = apply_increment(self._delta, ds, dth)
         if not self._walk:
-            added = g @ q @ g.T
-        self._delta_cov = f @ self._delta_cov @ f.T + added
+            added = congruence(g, q)
+        self._delta_cov = congruence(f, self._delta_cov) + added
         if c.scan_matching:
             f, g = increment_jacobians(self._scan_delta[2], ds, dth)
             self._scan_delta = apply_increment(self._scan_delta, ds, dth)
             if not self._walk:
-                added = g @ q @ g.T
-            self._scan_cov = f @ self._scan_cov @ f.T + added
+                added = congruence(g, q)
+            self._scan_cov = congruence(f, self._scan_cov) + added
 
     def _keyframe_due(self, t: float) -> bool:
         c = self.config
@@ -841,7 +842,7 @@ class GtsamSmoother(Localizer):
         a = b - psi
         rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
         cov = np.zeros((3, 3))
-        cov[:2, :2] = rot @ cov_rb @ rot.T
+        cov[:2, :2] = congruence(rot, cov_rb)
         cov[2, 2] = (c.yaw_sigma_rad + c.yaw_sigma_per_m2 * r * r) ** 2
         noise = gtsam.noiseModel.Robust.Create(
             gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k),
@@ -975,7 +976,8 @@ class GtsamSmoother(Localizer):
         saa, sab, sbb = joint.at(X(a), X(a)), joint.at(X(a), X(b)), joint.at(X(b), X(b))
         inv = gtsam.Pose2(*rel).inverse()
         j = -inv.AdjointMap()  # ∂(a⁻¹b)/∂a; ∂(a⁻¹b)/∂b = I
-        cov = j @ saa @ j.T + j @ sab + sab.T @ j.T + sbb
+        j_sab = matmul(j, sab)
+        cov = congruence(j, saa) + j_sab + j_sab.T + sbb
         return 0.5 * (cov + cov.T)
 
     def _loop_closures(self, poses: np.ndarray) -> None:
@@ -984,7 +986,7 @@ class GtsamSmoother(Localizer):
         loop = self.config.loop
         here = poses[self._scans[-1].kf]
         marginal = self.isam.marginalCovariance(X(self._scans[-1].kf))
-        sxy = math.sqrt(max(float(np.linalg.eigvalsh(marginal[:2, :2])[-1]), 0.0))
+        sxy = math.sqrt(max(float(eigh2(marginal[:2, :2])[0][-1]), 0.0))
         chosen, dist = self._loop_candidates(poses, here, sxy)
         added = sum(self._try_loop(poses, here, i, float(dist[i])) for i in chosen)
         updates = loop.extra_updates
@@ -1089,7 +1091,7 @@ class GtsamSmoother(Localizer):
         cand, cur = self._scans[i], self._scans[-1]
         guess = relative_guess(poses[cand.kf], here)
         rel_cov = self._relative_covariance(cand.kf, cur.kf, guess)
-        sxy = math.sqrt(max(float(np.linalg.eigvalsh(rel_cov[:2, :2])[-1]), 0.0))
+        sxy = math.sqrt(max(float(eigh2(rel_cov[:2, :2])[0][-1]), 0.0))
         sth = math.sqrt(max(float(rel_cov[2, 2]), 0.0))
         wxy = float(np.clip(loop.gate.window_sigmas * sxy, *loop.gate.window_xy_m))
         wth = float(np.clip(loop.gate.window_sigmas * sth, *loop.gate.window_theta_rad))
@@ -1103,7 +1105,7 @@ class GtsamSmoother(Localizer):
         if ok and loop.gate_chi2 > 0:
             d = relative_guess(guess, res.pose)
             s_ = rel_cov + _body_covariance(res.covariance, res.pose[2])
-            ok = float(d @ np.linalg.solve(s_, d)) <= loop.gate_chi2
+            ok = dot(d, solve(s_, d)) <= loop.gate_chi2
             if not ok:
                 self.counts["loop_gated"] += 1
         if not ok:
@@ -1148,7 +1150,7 @@ class GtsamSmoother(Localizer):
         # frame is already done by GTSAM (Pose2 tangent is body-frame); add delta's.
         c, s = math.cos(self._kf_pose[2]), math.sin(self._kf_pose[2])
         rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        cov = rot @ (self._marginal + self._delta_cov + self._unknown) @ rot.T
+        cov = congruence(rot, self._marginal + self._delta_cov + self._unknown)
         return PoseEstimate(t, compose(self._kf_pose, self._delta), cov)
 
     def trajectory(self) -> Trajectory:
@@ -1177,7 +1179,7 @@ class GtsamSmoother(Localizer):
                 tag = values.atPose2(T(lid))
                 c, s = math.cos(tag.theta()), math.sin(tag.theta())
                 rot = np.array([[c, -s], [s, c]])  # the marginal is in the tag's frame
-                cov = rot @ self.isam.marginalCovariance(T(lid))[:2, :2] @ rot.T
+                cov = congruence(rot, self.isam.marginalCovariance(T(lid))[:2, :2])
                 out[lid] = (np.array([tag.x(), tag.y()]), cov)
             else:
                 p = values.atPoint2(L(lid))

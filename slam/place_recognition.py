@@ -36,7 +36,7 @@ def ring_key(
     seen = np.zeros((rings, sectors), dtype=bool)
     seen[ring, sector] = True
     key = seen.mean(axis=1)
-    norm = np.linalg.norm(key)
+    norm = math.sqrt(float(np.sum(key * key)))  # (np.linalg.norm: BLAS, hardware.small_linalg)
     return key / norm if norm > 0 else key
 
 
@@ -45,7 +45,7 @@ def nearest_keys(keys: np.ndarray, query: np.ndarray, count: int) -> np.ndarray:
     nearest first."""
     if len(keys) == 0:
         return np.zeros(0, dtype=np.int64)
-    d = np.linalg.norm(keys - query, axis=1)
+    d = np.sqrt(np.sum((keys - query) ** 2, axis=1))
     count = min(count, len(keys))
     part = np.argpartition(d, count - 1)[:count]
     return part[np.argsort(d[part], kind="stable")]

@@ -63,6 +63,7 @@ from scipy.spatial import cKDTree
 from hardware.calibration import WalkerCalibration
 from hardware.geometry import wrap_angle
 from hardware.messages import DepthFrame, LaserScan
+from hardware.small_linalg import dot, eigh2, eigvalsh3, gram, inv, matvec, solve
 from mapping.depth_points import DepthConfig, project_depth_frame
 from mapping.distance import squared_distances
 from mapping.scan_points import ScanConfig, scan_to_observation
@@ -270,14 +271,16 @@ def _points(query: np.ndarray | Scan) -> np.ndarray:
     return np.asarray(query, dtype=float).reshape(-1, 2)
 
 
-def _rot(theta: float) -> np.ndarray:
+def _rotated(points: np.ndarray, theta: float) -> np.ndarray:
+    """N×2 points rotated by θ (written out: hardware.small_linalg)."""
     c, s = math.cos(theta), math.sin(theta)
-    return np.array([[c, -s], [s, c]])
+    x, y = points[:, 0], points[:, 1]
+    return np.column_stack([c * x - s * y, s * x + c * y])
 
 
 def transform(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     """N×2 points from the frame `pose` (x, y, θ) to its parent frame."""
-    return points @ _rot(pose[2]).T + pose[:2]
+    return _rotated(points, float(pose[2])) + pose[:2]
 
 
 # ---------------------------------------------------------------------------------------
@@ -468,10 +471,10 @@ def icp(
         r, jac = _residuals(ref, q[ok], x[:2], idx[ok])
         a = np.abs(r)
         w = np.where(a <= cfg.huber_m, 1.0, cfg.huber_m / np.maximum(a, 1e-12))
-        h = jac.T @ (jac * w[:, None])
-        g = jac.T @ (w * r)
+        h = gram(jac, w)
+        g = np.einsum("ni,n->i", jac, w * r)
         try:
-            step = -np.linalg.solve(h + 1e-9 * np.eye(3), g)
+            step = -solve(h + 1e-9 * np.eye(3), g)
         except np.linalg.LinAlgError:
             break
         x = x + step
@@ -505,13 +508,14 @@ def _evaluate(
         r, jac = _residuals(ref, q[inl], x[:2], idx[inl])
         rmse = float(np.sqrt(np.mean(r * r)))
         dof = max(len(r) - 3, 1)
-        sigma2 = max(float(r @ r) / dof, 1e-8)
-        h = jac.T @ jac
-        lam, vec = np.linalg.eigh(h[:2, :2])
+        sigma2 = max(dot(r, r) / dof, 1e-8)
+        h = gram(jac)
+        lam, vec = eigh2(h[:2, :2])
         if lam[1] > 0:
             constraint, weak = float(max(lam[0], 0.0) / lam[1]), vec[:, 0]
-        if np.linalg.cond(h) < 1e12:
-            cov = cfg.covariance_scale * sigma2 * np.linalg.inv(h)
+        eig = eigvalsh3(h)
+        if eig[0] > 0 and eig[2] < 1e12 * eig[0]:  # condition number below 1e12
+            cov = cfg.covariance_scale * sigma2 * inv(h)
             cov = 0.5 * (cov + cov.T) + np.diag(np.square(cfg.sigma_floor))
             if constraint < cfg.degenerate_constraint:
                 cov[:2, :2] += cfg.degenerate_sigma_m**2 * np.outer(weak, weak)
@@ -565,7 +569,7 @@ def correlative_search(
     angles = guess[2] + np.arange(-na, na + 1) * cfg.angle_step_rad
     flat = pooled.ravel()
     cells = [
-        np.floor((query @ _rot(th).T + guess[:2] - lo) / res).astype(np.int64) for th in angles
+        np.floor((_rotated(query, th) + guess[:2] - lo) / res).astype(np.int64) for th in angles
     ]
     if nt <= cfg.multires_offsets:
         offs = np.arange(-nt, nt + 1) * step_cells  # cell offsets
@@ -632,11 +636,11 @@ def match(
     best, score = results[0]
     ambiguity = 0.0
     if best.support > 0 and np.all(np.isfinite(best.covariance)):
-        info = np.linalg.inv(best.covariance)
+        info = inv(best.covariance)
         for other, _ in results[1:]:
             d = other.pose - best.pose
             d[2] = wrap_angle(d[2])
-            distinct = d @ info @ d > 9.0 and (
+            distinct = dot(d, matvec(info, d)) > 9.0 and (
                 math.hypot(d[0], d[1]) > 2 * cfg.coarse_step_m or abs(d[2]) > 3 * cfg.angle_step_rad
             )
             if other.converged and distinct:

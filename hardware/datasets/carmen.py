@@ -152,6 +152,7 @@ from hardware.datasets.textio import iter_lines, parse_floats, read_table
 from hardware.geometry import arc_end1, between1, compose1, wrap1
 from hardware.messages import LaserScan, VelocityOdometry
 from hardware.registry import Spec
+from hardware.small_linalg import solve
 
 
 class OdometryMode(Choice):
@@ -559,7 +560,7 @@ def _smooth_run(rel: list[tuple[float, float, float]]) -> tuple[list, float, flo
         jac = np.vstack([np.hstack([d_s, d_th]), np.r_[np.zeros(m), np.ones(m)]])  # 3×2m
         jw = jac * w
         try:
-            step = jw.T @ np.linalg.solve(jw @ jac.T, r)
+            step = np.einsum("ij,i->j", jw, solve(np.einsum("ik,jk->ij", jw, jac), r))
         except np.linalg.LinAlgError:
             return None
         s, th = s + step[:m], th + step[m:]
