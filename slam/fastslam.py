@@ -784,12 +784,14 @@ class FastSlam(Localizer):
         the known start)."""
         filtered = self.track.trajectory()
         deltas, delta_covs = self._steps.deltas()
-        covs = np.zeros((len(deltas), 3, 3))
-        start = np.zeros(len(deltas), dtype=np.bool_)
-        start[0] = True
-        bridge_covariances(filtered.poses, deltas, delta_covs, start, covs)
         x, p, _ = self._end
         epochs = self._full.smoothed(x, p)
+        # grown from the start up to the first epoch (bridge grows them from there on)
+        k = int(epochs[0][0]) + 1 if len(epochs[0]) else len(deltas)
+        covs = np.zeros((len(deltas), 3, 3))
+        start = np.zeros(k, dtype=np.bool_)
+        start[0] = True
+        bridge_covariances(filtered.poses[:k], deltas[:k], delta_covs[:k], start, covs[:k])
         means, covs = bridge(filtered.poses, covs, deltas, delta_covs, *epochs)
         return Trajectory(filtered.t, rts_smooth(means, covs, deltas, delta_covs))
 
