@@ -78,13 +78,14 @@ def between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Map N×2 points from the frame of `pose` to its parent frame (rotate, then translate)."""
+    """Map N×2 points from the frame of one `pose` to its parent frame: rotate, then
+    translate. Written out with `math`'s cos and sin, so that the scan matcher's results
+    do not depend on which SIMD or BLAS kernels the CPU picks."""
     pose = _as_poses(pose)
-    c, s = np.cos(pose[2]), np.sin(pose[2])
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
     pts = np.asarray(points, dtype=float)
-    return np.column_stack(
-        [pose[0] + c * pts[:, 0] - s * pts[:, 1], pose[1] + s * pts[:, 0] + c * pts[:, 1]]
-    )
+    x, y = pts[:, 0], pts[:, 1]
+    return np.column_stack([(c * x - s * y) + pose[0], (s * x + c * y) + pose[1]])
 
 
 def to_matrix(pose: np.ndarray) -> np.ndarray:

@@ -61,7 +61,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from hardware.calibration import WalkerCalibration
-from hardware.geometry import wrap_angle
+from hardware.geometry import transform_points, wrap_angle
 from hardware.messages import DepthFrame, LaserScan
 from hardware.small_linalg import dot, eigh2, eigvalsh3, gram, inv, matvec, solve
 from mapping.depth_points import DepthConfig, project_depth_frame
@@ -220,9 +220,9 @@ class Scan:
     def moved(self, pose: np.ndarray) -> Scan:
         """The same scan expressed in the parent frame of `pose` (its pose there)."""
         return Scan(
-            transform(pose, self.points),
-            transform(pose, self.origin[None])[0],
-            transform(pose, self.ends),
+            transform_points(pose, self.points),
+            transform_points(pose, self.origin[None])[0],
+            transform_points(pose, self.ends),
         )
 
 
@@ -269,18 +269,6 @@ def _points(query: np.ndarray | Scan) -> np.ndarray:
     if isinstance(query, Scan):
         return query.points
     return np.asarray(query, dtype=float).reshape(-1, 2)
-
-
-def _rotated(points: np.ndarray, theta: float) -> np.ndarray:
-    """N×2 points rotated by θ (written out: hardware.small_linalg)."""
-    c, s = math.cos(theta), math.sin(theta)
-    x, y = points[:, 0], points[:, 1]
-    return np.column_stack([c * x - s * y, s * x + c * y])
-
-
-def transform(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """N×2 points from the frame `pose` (x, y, θ) to its parent frame."""
-    return _rotated(points, float(pose[2])) + pose[:2]
 
 
 # ---------------------------------------------------------------------------------------
@@ -464,7 +452,7 @@ def icp(
     converged = False
     it = 0
     for it in range(1, cfg.icp_iterations + 1):  # noqa: B007 - the count is reported
-        q = transform(x, query)
+        q = transform_points(x, query)
         _, idx, ok = _associate(ref, q, cfg.max_correspondence_m)
         if ok.sum() < cfg.min_points:
             break
@@ -491,7 +479,7 @@ def icp(
 def _evaluate(
     ref: Reference, query: np.ndarray, x: np.ndarray, cfg: ScanMatchConfig, it: int, conv: bool
 ) -> MatchResult:
-    q = transform(x, query)
+    q = transform_points(x, query)
     _, idx, ok = _associate(ref, q, cfg.max_correspondence_m)
     has_n = ref.has_normal[idx]
     dist = np.where(
@@ -569,7 +557,8 @@ def correlative_search(
     angles = guess[2] + np.arange(-na, na + 1) * cfg.angle_step_rad
     flat = pooled.ravel()
     cells = [
-        np.floor((_rotated(query, th) + guess[:2] - lo) / res).astype(np.int64) for th in angles
+        np.floor((transform_points((guess[0], guess[1], th), query) - lo) / res).astype(np.int64)
+        for th in angles
     ]
     if nt <= cfg.multires_offsets:
         offs = np.arange(-nt, nt + 1) * step_cells  # cell offsets
