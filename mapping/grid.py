@@ -255,9 +255,12 @@ class GridExtent(ABC):
     def _fit(self, box: _Box, centre_xy: np.ndarray) -> _Box | None:
         """Grow (or roll, centred on centre_xy) so that the frame's `box` fits, if it can;
         the part of it the grid then holds (None: nothing)."""
-        if not (self.shape[0] and self._box().contains(box)):  # most frames fit as is
-            centre = cells_of(np.asarray(centre_xy, dtype=float)[None], self.resolution)[0]
-            self._ensure(np.array(box.lo), np.array(box.hi), centre)
+        if self.shape[0]:
+            held = self._box()
+            if held.i0 <= box.i0 and held.j0 <= box.j0 and box.i1 <= held.i1 and box.j1 <= held.j1:
+                return box  # most frames fit as is
+        centre = cells_of(np.asarray(centre_xy, dtype=float)[None], self.resolution)[0]
+        self._ensure(np.array(box.lo), np.array(box.hi), centre)
         return box.intersection(self._box())
 
     def _box(self) -> _Box:
@@ -352,9 +355,6 @@ class _Box:
     @property
     def height(self) -> int:
         return self.j1 - self.j0 + 1
-
-    def contains(self, other: _Box) -> bool:
-        return self.intersection(other) == other
 
     def intersection(self, other: _Box) -> _Box | None:
         i0, j0 = max(self.i0, other.i0), max(self.j0, other.j0)
