@@ -105,6 +105,10 @@ class AssociationConfig:
 
 _QUANTILES: dict[tuple[float, int], float] = {}
 
+# 99.9 % quantiles of χ² with 2 and 3 degrees of freedom (scipy.stats.chi2.ppf(0.999, k)):
+# the known-ID sighting gates of FastSLAM and gtsam.
+CHI2_999 = {2: 13.815510557964274, 3: 16.26623619623813}
+
 
 def _quantile(p: float, dof: int) -> float:
     key = (p, dof)

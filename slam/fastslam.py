@@ -130,7 +130,7 @@ from hardware.geometry import wrap_angle
 from hardware.messages import Message
 from hardware.registry import Spec
 from slam import fastslam_kernels as kernels
-from slam.association import FIRST_ASSOCIATED_ID, AssociationConfig
+from slam.association import CHI2_999, FIRST_ASSOCIATED_ID, AssociationConfig
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.measurement import (
     BEARING_SIGMA_RAD,
@@ -169,9 +169,6 @@ __all__ = [
     "tag_pose",
     "tag_pose_jacobians",
 ]
-
-# 99.9 % quantiles of χ² with 2 and 3 degrees of freedom (scipy.stats.chi2.ppf(0.999, k)).
-CHI2_999 = {2: 13.815510557964274, 3: 16.26623619623813}
 
 
 class FastSlamSmoother(Choice):

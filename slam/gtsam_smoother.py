@@ -5,15 +5,17 @@ Jacobians) into a keyframe-to-keyframe `BetweenFactorPose2`; a new keyframe star
 the walker has moved `keyframe_distance_m`, turned `keyframe_angle_rad` or
 `keyframe_time_s` has passed, and also when landmarks are seen `obs_keyframe_dt_s`
 after the last keyframe. Landmark observations become `BearingRangeFactor2D` factors on
-their keyframe with a Huber-robust noise model (outliers lose their pull rather than
-being gated). Sightings without an ID (−1: Victoria Park's trees) are paired with the
-landmarks found so far by nearest neighbour on the current estimate (slam.association:
-the sighting placed at the current pose with its measurement covariance, the squared
-Mahalanobis distance divided by `association.inflation` for the pose and landmark errors
-the estimate carries no covariance for; the χ² gate of `association.gate_prob`), and
-become factors like the others, robust, so that a wrong
-pairing can be outvoted by the right ones; a sighting that matches none is a
-provisional landmark until it is seen again (`association.confirm_sightings`).
+their keyframe with a Huber-robust noise model (a moderate outlier loses its pull);
+a sighting with an ID that the current estimate finds implausible (`gate_chi2`: a χ²
+gate on the pose's and the landmark's marginals) is left out. Sightings without an ID
+(−1: Victoria Park's trees) are paired with the landmarks found so far by nearest
+neighbour on the current estimate (slam.association: the sighting placed at the current
+pose with its measurement covariance, the squared Mahalanobis distance divided by
+`association.inflation` for the pose and landmark errors the estimate carries no
+covariance for; the χ² gate of `association.gate_prob`), and become factors like the
+others, robust, so that a wrong pairing can be outvoted by the right ones; a sighting
+that matches none is a provisional landmark until it is seen again
+(`association.confirm_sightings`).
 With `observation="tag-pose"` a tag detection's full planar pose is used:
 each tag is a `Pose2` variable (T(id)) and each detection a `BetweenFactorPose2` from
 its keyframe to the tag — position noise from the range and bearing σ, rotated into the
@@ -139,6 +141,7 @@ from slam.absolute import (
     offset_position_jacobian,
 )
 from slam.association import (
+    CHI2_999,
     AssociationConfig,
     Discovery,
     mahalanobis2,
@@ -154,6 +157,8 @@ from slam.measurement import (
     ObservationModel,
     Sightings,
     placed_sightings,
+    range_bearing,
+    range_bearing_jacobians,
 )
 from slam.motion import (
     Increment,
@@ -341,6 +346,15 @@ class GtsamConfig(LocalizerConfig):
     after the last keyframe start a new one (else they attach to it).
     range_sigma_m + range_sigma_frac·r, bearing_sigma_rad: landmark measurement noise;
     huber_k: robust kernel threshold in standard deviations.
+    gate_chi2: a range-bearing sighting with an ID, of a landmark already in the
+    estimate, is left out (counted: `gated`) when its squared Mahalanobis distance to
+    the prediction from the current estimate exceeds this; the prediction's covariance
+    holds the pose's and the landmark's marginals (their correlation left out, which
+    only widens the gate) and the measurement noise. None: the 99.9 % χ² quantile
+    (13.8, FastSLAM's gate); 0: no gate. (Sightings without an ID have the
+    association's gates instead.) The Huber kernel bounds an outlier's pull but does
+    not remove it: MRCLAM robot 3's three sightings read with the wrong ID (bearing ~π
+    off) turned its keyframe by 150° for ~10 s without the gate (BENCHMARKS.md).
     association_enabled, association: sightings without IDs (module docstring);
     association.method is EKF-SLAM's (gtsam pairs by nearest neighbour), its gates,
     inflation and provisional landmarks apply.
@@ -387,6 +401,7 @@ class GtsamConfig(LocalizerConfig):
     range_sigma_frac: float = RANGE_SIGMA_FRAC
     bearing_sigma_rad: float = BEARING_SIGMA_RAD
     huber_k: float = 1.345
+    gate_chi2: float | None = None
     association_enabled: bool = True
     association: AssociationConfig = field(default_factory=AssociationConfig)
     update_per_sighting: bool = True
@@ -426,6 +441,8 @@ class GtsamConfig(LocalizerConfig):
         )
         if self.yaw_sigma_rad <= 0 or self.yaw_sigma_per_m2 < 0:
             raise ValueError("yaw_sigma_rad must be > 0 and yaw_sigma_per_m2 >= 0")
+        if self.gate_chi2 is not None and not self.gate_chi2 >= 0:
+            raise ValueError(f"gate_chi2 must be >= 0 (or None), got {self.gate_chi2}")
 
 
 @dataclass(eq=False)
@@ -503,7 +520,10 @@ class GtsamSmoother(Localizer):
         self._landmarks: set[int] = set()
         self._marginal: np.ndarray | None = None
         self._cache: tuple[int, Trajectory] | None = None
-        self.counts = {"keyframes": 0, "landmark_factors": 0, "without_id": 0, "updates": 0}
+        self.counts = {
+            "keyframes": 0, "landmark_factors": 0, "gated": 0, "without_id": 0, "updates": 0
+        }  # fmt: skip
+        self._gate = config.gate_chi2 if config.gate_chi2 is not None else CHI2_999[2]
         if config.association_enabled:
             self.counts["associated"] = 0
         self._discovery = Discovery(config.association)
@@ -754,6 +774,9 @@ class GtsamSmoother(Localizer):
                 q, r, b, sr = self._from_keyframe(z)
                 self._tag_factor(lid, q, r, b, sr, float(wrap_angle(yaw + self._delta[2])))
                 continue
+            if self._gate and self.isam.valueExists(L(lid)) and self._implausible(lid, z):
+                self.counts["gated"] += 1
+                continue
             self._range_bearing_factor(lid, z)
         if unknown and c.association_enabled and not self._tags:
             self._associate(obs.t, np.array(unknown, dtype=float))
@@ -787,6 +810,22 @@ class GtsamSmoother(Localizer):
             self._values.insert(L(lid), gtsam.Point2(*guess))
             self._found_xy[lid] = (guess, -1)
         self.counts["landmark_factors"] += 1
+
+    def _implausible(self, lid: int, z: np.ndarray) -> bool:
+        """Whether the sighting z (range, bearing) of landmark lid fails `gate_chi2`
+        against the current estimate (GtsamConfig)."""
+        pose, pose_cov = self._pose_now()
+        landmark = np.asarray(self.isam.calculateEstimatePoint2(L(lid)), dtype=float)
+        h_pose, h_landmark = range_bearing_jacobians(pose, landmark)
+        sr = self.config.range_sigma_m + self.config.range_sigma_frac * float(z[0])
+        s_ = (
+            congruence(h_pose, pose_cov)
+            + congruence(h_landmark, self.isam.marginalCovariance(L(lid)))
+            + np.diag([sr * sr, self.config.bearing_sigma_rad**2])
+        )
+        nu = z - range_bearing(pose, landmark)
+        nu[1] = wrap_angle(nu[1])
+        return dot(nu, solve(s_, nu)) > self._gate
 
     def _associate(self, t: float, z: np.ndarray) -> None:
         """Sightings (n, 2) without IDs paired by nearest neighbour with the landmarks
@@ -1144,14 +1183,18 @@ class GtsamSmoother(Localizer):
         t = self._t if self._t is not None else float("nan")
         if self._kf < 0:
             return PoseEstimate(t, np.array(self.config.initial_pose, float), np.zeros((3, 3)))
+        return PoseEstimate(t, *self._pose_now())
+
+    def _pose_now(self) -> tuple[np.ndarray, np.ndarray]:
+        """The latest keyframe's estimate ⊕ the odometry since, and its world-frame
+        covariance to first order: the keyframe's marginal (body-frame: Pose2's
+        tangent) plus the odometry's since, rotated into the world frame."""
         if self._marginal is None:
             self._marginal = self.isam.marginalCovariance(X(self._kf))
-        # Covariance of kf ⊕ delta to first order: rotate the keyframe's into the world
-        # frame is already done by GTSAM (Pose2 tangent is body-frame); add delta's.
         c, s = math.cos(self._kf_pose[2]), math.sin(self._kf_pose[2])
         rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         cov = congruence(rot, self._marginal + self._delta_cov + self._unknown)
-        return PoseEstimate(t, compose(self._kf_pose, self._delta), cov)
+        return compose(self._kf_pose, self._delta), cov
 
     def trajectory(self) -> Trajectory:
         self._place_held()

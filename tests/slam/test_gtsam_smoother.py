@@ -9,6 +9,7 @@ from helpers import replay
 from experiments.metrics import ate, landmark_rmse, map_scores, trajectory_alignment
 from experiments.pipeline import Pipeline
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import wrap_angle
 from hardware.log import read_log
 from hardware.messages import EncoderTicks, RangeBearing
 from hardware.sim.world import World
@@ -45,8 +46,11 @@ def test_odometry_only_is_the_odometry_chain_and_says_so():
     assert "odometry only" in sm.diagnostics()["note"]
 
 
-def _square_messages(outlier=False):
-    """A 4 m square (exact ticks) seeing landmark 3 at (2, 2) from every keyframe."""
+def _square_messages(outlier=False, wrong_id=False):
+    """A 4 m square (exact ticks) seeing landmark 3 at (2, 2) from every keyframe;
+    outlier: the third side's ranges 3 m long; wrong_id: halfway along the second
+    side, three more sightings of landmark 3 at once with their bearings π off (another
+    landmark's, read with the wrong ID, as MRCLAM's robot 3 has them)."""
     cal = WalkerCalibration()
     m = cal.metres_per_count
     left = right = 0
@@ -54,7 +58,7 @@ def _square_messages(outlier=False):
     yield EncoderTicks(t, 0, 0)
     pose = np.zeros(3)
     for side in range(4):
-        for _ in range(40):  # 1 m in 2.5 cm steps along x of the walker
+        for step in range(40):  # 1 m in 2.5 cm steps along x of the walker
             n = round(0.025 / m)
             left, right = left + n, right + n
             t += 0.05
@@ -65,6 +69,9 @@ def _square_messages(outlier=False):
             if outlier and side == 2:
                 rng += 3.0
             yield RangeBearing(t, 3, rng, bearing)
+            if wrong_id and side == 1 and step == 20:
+                for k in range(3):
+                    yield RangeBearing(t, 3, rng + 0.1 * k, bearing + np.pi)
         # turn 90° left on the spot
         n = round(np.pi / 2 * cal.track_m / 2 / m)
         left, right = left - n, right + n
@@ -73,10 +80,10 @@ def _square_messages(outlier=False):
         pose[2] += n * m * 2 / cal.track_m
 
 
-def _square_with_landmarks(outlier=False, config=None):
+def _square_with_landmarks(outlier=False, config=None, wrong_id=False):
     """The smoother after driving the square of `_square_messages`."""
     sm = create("gtsam", WalkerCalibration(), config)
-    for msg in _square_messages(outlier):
+    for msg in _square_messages(outlier, wrong_id):
         sm.process(msg)
     return sm
 
@@ -86,9 +93,30 @@ def test_landmark_position_and_robust_outliers():
     mean, cov = clean.landmarks()[3]
     assert mean == pytest.approx([2.0, 2.0], abs=0.02)
     assert np.all(np.linalg.eigvalsh(cov) > 0)
+    assert clean.diagnostics()["gated"] == 0
+    # a whole side of 3 m-off ranges: the gate leaves every one out ...
     noisy = _square_with_landmarks(outlier=True)
-    # a whole side of 3 m-off ranges drags the landmark much less than 3 m (Huber)
-    assert np.hypot(*(noisy.landmarks()[3][0] - [2.0, 2.0])) < 0.5
+    assert noisy.diagnostics()["gated"] == 40
+    assert noisy.landmarks()[3][0] == pytest.approx(mean, abs=1e-6)
+    # ... and without it they drag the landmark (by 3 cm), much less than 3 m (Huber)
+    huber = _square_with_landmarks(outlier=True, config=GtsamConfig(gate_chi2=0.0))
+    assert huber.diagnostics()["gated"] == 0
+    assert 0.01 < np.hypot(*(huber.landmarks()[3][0] - mean)) < 0.5
+
+
+def test_sightings_with_a_wrong_id_are_gated():
+    """Three sightings at once with their bearings π off (a wrong ID): gated, the
+    trajectory is the clean run's; without the gate they turn the walker (here by 0.2°:
+    the exact odometry holds the heading; MRCLAM robot 3's turned by 150°)."""
+    clean = _square_with_landmarks()
+    wrong = _square_with_landmarks(wrong_id=True)
+    assert wrong.diagnostics()["gated"] == 3
+    assert np.allclose(wrong.trajectory().poses, clean.trajectory().poses, atol=1e-9)
+    ungated = _square_with_landmarks(wrong_id=True, config=GtsamConfig(gate_chi2=0.0))
+    turned = np.abs(wrap_angle(ungated.trajectory().poses[:, 2] - clean.trajectory().poses[:, 2]))
+    assert turned.max() > 1e-3
+    with pytest.raises(ValueError, match="gate_chi2"):
+        GtsamConfig(gate_chi2=-1.0)
 
 
 def test_without_landmarks_the_observations_are_ignored():
