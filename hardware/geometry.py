@@ -1,10 +1,10 @@
 """SE(2) pose algebra, at the bottom of the package order so that every package uses it.
 
 Poses are (x, y, θ), θ counter-clockwise and wrapped to (−π, π]. The array functions
-(`compose`, `inverse`, `between`, `transform_points`, ...) broadcast over arrays of
-poses; the `*1` functions take and return one pose as a tuple of floats with `math`
-(dataset importers walk millions of odometry lines one at a time, where numpy's
-per-call cost dominates).
+(`compose`, `inverse`, `between`, ...) broadcast over arrays of poses, and
+`transform_points` maps many points by one pose; the `*1` functions take and return one
+pose as a tuple of floats with `math` (dataset importers walk millions of odometry
+lines one at a time, where numpy's per-call cost dominates).
 """
 
 from __future__ import annotations
