@@ -128,7 +128,7 @@ from gtsam.symbol_shorthand import L, S, T, X
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
-from hardware.geometry import compose, wrap_angle
+from hardware.geometry import compose, transform_points, wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
 from hardware.small_linalg import congruence, dot, eigh2, matmul, solve
@@ -787,12 +787,14 @@ class GtsamSmoother(Localizer):
         """A sighting (range, bearing from the walker now) as seen from the latest
         keyframe (the walker moved self._delta since): the point q, its range, bearing
         and range σ."""
-        c = self.config
-        p = np.array([z[0] * math.cos(z[1]), z[0] * math.sin(z[1])])
-        c_, s_ = math.cos(self._delta[2]), math.sin(self._delta[2])
-        q = self._delta[:2] + np.array([c_ * p[0] - s_ * p[1], s_ * p[0] + c_ * p[1]])
+        p = np.array([[z[0] * math.cos(z[1]), z[0] * math.sin(z[1])]])
+        q = transform_points(self._delta, p)[0]
         r, b = float(np.hypot(*q)), float(math.atan2(q[1], q[0]))
-        return q, r, b, c.range_sigma_m + c.range_sigma_frac * r
+        return q, r, b, self._range_sigma(r)
+
+    def _range_sigma(self, r: float | np.ndarray) -> float | np.ndarray:
+        """The range σ of sightings at range(s) r."""
+        return self.config.range_sigma_m + self.config.range_sigma_frac * r
 
     def _range_bearing_factor(self, lid: int, z: np.ndarray) -> None:
         """A Huber-robust BearingRangeFactor2D from the latest keyframe to L(lid)."""
@@ -817,7 +819,7 @@ class GtsamSmoother(Localizer):
         pose, pose_cov = self._pose_now()
         landmark = np.asarray(self.isam.calculateEstimatePoint2(L(lid)), dtype=float)
         h_pose, h_landmark = range_bearing_jacobians(pose, landmark)
-        sr = self.config.range_sigma_m + self.config.range_sigma_frac * float(z[0])
+        sr = self._range_sigma(float(z[0]))
         s_ = (
             congruence(h_pose, pose_cov)
             + congruence(h_landmark, self.isam.marginalCovariance(L(lid)))
@@ -825,7 +827,7 @@ class GtsamSmoother(Localizer):
         )
         nu = z - range_bearing(pose, landmark)
         nu[1] = wrap_angle(nu[1])
-        return dot(nu, solve(s_, nu)) > self._gate
+        return float(mahalanobis2(nu, s_)) > self._gate
 
     def _associate(self, t: float, z: np.ndarray) -> None:
         """Sightings (n, 2) without IDs paired by nearest neighbour with the landmarks
@@ -834,7 +836,7 @@ class GtsamSmoother(Localizer):
         c = self.config
         a = c.association
         pose = compose(self._kf_pose, self._delta)
-        sr = c.range_sigma_m + c.range_sigma_frac * z[:, 0]
+        sr = self._range_sigma(z[:, 0])
         var = np.column_stack([sr * sr, np.full(len(z), c.bearing_sigma_rad**2)])
         world, covs = placed_sightings(pose, z, var)
         sigma_r = math.sqrt(float(var[:, 0].max()))
