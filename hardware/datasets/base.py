@@ -172,12 +172,19 @@ def as_float(name: str, value: Any, *, allow_none: bool = False) -> float | None
     return f
 
 
+def interpolate_poses(t: np.ndarray, poses: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Poses (N, 3) at the times `at` from a time-sorted pose table (x, y linear, θ linear
+    in its unwrapped form and left unwrapped); clamps at the table's ends."""
+    th = np.unwrap(poses[:, 2])
+    return np.column_stack(
+        [np.interp(at, t, poses[:, 0]), np.interp(at, t, poses[:, 1]), np.interp(at, t, th)]
+    )
+
+
 def interpolate_pose(t: np.ndarray, poses: np.ndarray, at: float) -> tuple[float, float, float]:
     """Pose at time `at` from a time-sorted pose table (linear, θ unwrapped); clamps."""
-    th = np.unwrap(poses[:, 2])
-    x = float(np.interp(at, t, poses[:, 0]))
-    y = float(np.interp(at, t, poses[:, 1]))
-    return (x, y, math.remainder(float(np.interp(at, t, th)), 2.0 * math.pi))
+    x, y, th = interpolate_poses(t, poses, np.array([at]))[0].tolist()
+    return (x, y, math.remainder(th, 2.0 * math.pi))
 
 
 # ---------------------------------------------------------------------------------------

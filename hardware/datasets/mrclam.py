@@ -84,6 +84,14 @@ own range biases of a few cm, which are constant in time and so not averaged awa
 bearing σ 0.015 rad (rms 0.016–0.019), and velocity-odometry noise over 1 s of
 σ(ds) = 0.13·|v|, σ(dθ) = 0.23·|ω| + 0.011 rad (slam.motion.MotionNoise). Without the
 calibration there are none (the localizers' defaults were fitted to the raw files).
+
+Model twin (option `twin`, metadata "twin"): `twin=SEED` keeps the robot's schedule (the
+odometry's times, each sighting's time and landmark ID), its ground truth and the
+surveyed landmarks, and regenerates the odometry and the sightings from the ground truth
+with white noise of exactly the proposed levels (`hardware.datasets.model_twin`), which
+are then proposed with or without the calibration. A localizer's error on the twin is
+what the schedule and geometry allow when its model is right; against the recorded
+values it shows how much the data break the model. The name gets "_twinSEED".
 """
 
 from __future__ import annotations
@@ -112,6 +120,12 @@ from hardware.datasets.base import (
     tie_ordered_streams,
     time_order,
     velocity_stream,
+)
+from hardware.datasets.model_twin import (
+    TwinNoise,
+    twin_generators,
+    twin_odometry,
+    twin_sightings,
 )
 from hardware.datasets.synthetic_slip import inject_slip
 from hardware.datasets.textio import FolderFiles, find_optional, read_table
@@ -212,18 +226,26 @@ class MrclamOptions:
     scale and offset; module docstring) | "dataset1-pooled" (the range's pooled over
     Dataset 1's robots) | "none" (the files' values). slip: a braking walker's slip put
     into the odometry, the slip ratio at full "brake" of the inner wheel of every turn
-    (`hardware.datasets.synthetic_slip`; 0: none), drawn with slip_seed."""
+    (`hardware.datasets.synthetic_slip`; 0: none), drawn with slip_seed. twin: None (the
+    recorded values) or a seed: the model twin (`hardware.datasets.model_twin`; module
+    docstring), the odometry and sightings regenerated from the ground truth with the
+    proposed noise levels; slip, if any, is put into the twin's odometry."""
 
     robot: int = 1
     groundtruth: GroundTruthChoice = GroundTruthChoice.AUTO
     calibration: CalibrationChoice = CalibrationChoice.DATASET1
     slip: float = 0.0
     slip_seed: int = 0
+    twin: int | None = None
 
     def __post_init__(self) -> None:
         coerce_option(self, "robot", as_int)
         coerce_option(self, "slip", as_float)
         coerce_option(self, "slip_seed", as_int)
+        if self.twin is not None and str(self.twin).lower() != "none":
+            coerce_option(self, "twin", as_int)
+        else:
+            object.__setattr__(self, "twin", None)
         if not (math.isfinite(self.slip) and 0.0 <= self.slip < 0.95):
             raise DatasetError(f"mrclam: slip must be in [0, 0.95), got {self.slip}")
         coerce(self, groundtruth=GroundTruthChoice, calibration=CalibrationChoice)
@@ -373,6 +395,41 @@ def _calibrate(robot: _Robot, cal: MrclamCalibration) -> tuple[np.ndarray, np.nd
     return odo, ranges
 
 
+def _model_twin(
+    robot: _Robot, odo: np.ndarray, seed: int, path: Path
+) -> tuple[_Robot, np.ndarray, np.ndarray, dict[str, Any]]:
+    """The robot's model twin (hardware.datasets.model_twin): the sightings within the
+    ground truth's span with regenerated values (the robot's `sightings` with them, the
+    ranges as the calibration would give them), the odometry rows within the span with
+    regenerated velocities, and the metadata "twin"."""
+    if robot.truth is None:
+        raise DatasetError(f"{path}: twin needs ground truth for robot (groundtruth is none)")
+    noise = TwinNoise.from_settings(DATASET1_LOCALIZER_SETTINGS)
+    odo_rng, sight_rng = twin_generators(seed)
+    twin_odo = twin_odometry(odo[:, 0], robot.truth, noise, odo_rng)
+    landmarks = dict(zip(robot.landmark_ids.tolist(), robot.landmarks[:, 1:3], strict=True))
+    xy = np.array([landmarks[i] for i in robot.sighting_ids.tolist()]).reshape(-1, 2)
+    kept, ranges, bearings = twin_sightings(
+        robot.sightings[:, 0], xy, robot.truth, noise, sight_rng
+    )
+    sightings = robot.sightings[kept].copy()
+    sightings[:, 2], sightings[:, 3] = ranges, bearings
+    robot = replace(robot, sightings=sightings, sighting_ids=robot.sighting_ids[kept])
+    metadata = {
+        "seed": seed,
+        "noise": asdict(noise),
+        "odometry_rows_left_out": len(odo) - len(twin_odo),
+        "sightings_left_out": int(np.sum(~kept)),
+        "note": (
+            "odometry and sightings regenerated from the ground truth with white noise "
+            "of the proposed levels, at the recorded times and IDs "
+            "(hardware/datasets/model_twin.py); rows outside the ground truth's span "
+            "left out"
+        ),
+    }
+    return robot, twin_odo, ranges, metadata
+
+
 def _groundtruth_metadata(kind: str, files: dict[str, str], robot: int) -> dict[str, Any]:
     """Metadata "groundtruth": its kind, source, file and how far to trust it."""
     exact_name, approx_name = _groundtruth_names(robot)
@@ -479,6 +536,9 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
     robot = _read_robot(folder, options)
     cal = sensor_calibration(options.calibration, options.robot)
     odo, ranges = _calibrate(robot, cal)
+    twin = None
+    if options.twin is not None:
+        robot, odo, ranges, twin = _model_twin(robot, odo, options.twin, path)
     rb = robot.sightings
     calibration = WalkerCalibration(
         track_m=CREATE_TRACK_M,
@@ -496,7 +556,12 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
         robot.truth,
     )
     name = f"{folder.name}/robot{options.robot}"
+    if options.twin is not None:
+        name += f"_twin{options.twin}"  # not the recorded values: never mixed up with them
     metadata = _metadata(name, options, folder, robot, odo, cal)
+    if twin is not None:
+        metadata["twin"] = twin
+        metadata["localizer_settings"] = dict(DATASET1_LOCALIZER_SETTINGS)
     if slipped is not None:
         # after the odometry at equal times: a row's brake holds from it on, as its velocity
         commands = slipped.brake_commands(calibration.brake)

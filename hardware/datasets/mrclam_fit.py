@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hardware.datasets.base import Dataset, DatasetError
+from hardware.datasets.base import Dataset, DatasetError, interpolate_poses
 from hardware.geometry import between, wrap_angle
 from hardware.messages import GroundTruthPose, RangeBearing
 
@@ -45,11 +45,9 @@ def sighting_geometry(ds: Dataset) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
     t = np.array([m.t for m in gt])
     rb = [m for m in ds.messages([RangeBearing]) if t[0] <= m.t <= t[-1]]
     at = np.array([m.t for m in rb])
-    x = np.interp(at, t, [m.x for m in gt])
-    y = np.interp(at, t, [m.y for m in gt])
-    th = np.interp(at, t, np.unwrap([m.theta for m in gt]))
+    pose = interpolate_poses(t, np.array([(m.x, m.y, m.theta) for m in gt]), at)
     lm = np.array([ds.metadata["landmarks"][str(m.landmark_id)] for m in rb]).reshape(-1, 2)
-    seen = between(np.column_stack([x, y, th]), np.column_stack([lm, np.zeros(len(lm))]))
+    seen = between(pose, np.column_stack([lm, np.zeros(len(lm))]))
     forward, lateral = seen[:, 0], seen[:, 1]
     recorded = np.array([(m.range_m, m.bearing_rad) for m in rb]).reshape(-1, 2)
     return recorded[:, 0], recorded[:, 1], forward, lateral
