@@ -91,7 +91,10 @@ surveyed landmarks, and regenerates the odometry and the sightings from the grou
 with white noise of exactly the proposed levels (`hardware.datasets.model_twin`), which
 are then proposed with or without the calibration. A localizer's error on the twin is
 what the schedule and geometry allow when its model is right; against the recorded
-values it shows how much the data break the model. The name gets "_twinSEED".
+values it shows how much the data break the model. `twin_values=odometry` or
+`sightings` regenerates only those (the others keep the recorded, calibrated values),
+to tell which of the two breaks it. The name gets "_twinSEED" (and "_odometry" or
+"_sightings").
 """
 
 from __future__ import annotations
@@ -134,6 +137,14 @@ from hardware.registry import Spec
 
 ROBOTS = (1, 2, 3, 4, 5)
 LANDMARK_SUBJECTS = tuple(range(6, 21))
+
+
+class TwinValues(Choice):
+    """Which of the model twin's values are regenerated (module docstring)."""
+
+    ALL = "all"
+    ODOMETRY = "odometry"
+    SIGHTINGS = "sightings"
 
 
 class GroundTruthChoice(Choice):
@@ -229,7 +240,8 @@ class MrclamOptions:
     (`hardware.datasets.synthetic_slip`; 0: none), drawn with slip_seed. twin: None (the
     recorded values) or a seed: the model twin (`hardware.datasets.model_twin`; module
     docstring), the odometry and sightings regenerated from the ground truth with the
-    proposed noise levels; slip, if any, is put into the twin's odometry."""
+    proposed noise levels; slip, if any, is put into the twin's odometry. twin_values:
+    "all" | "odometry" | "sightings": which of them (the others keep the recorded ones)."""
 
     robot: int = 1
     groundtruth: GroundTruthChoice = GroundTruthChoice.AUTO
@@ -237,6 +249,7 @@ class MrclamOptions:
     slip: float = 0.0
     slip_seed: int = 0
     twin: int | None = None
+    twin_values: TwinValues = TwinValues.ALL
 
     def __post_init__(self) -> None:
         coerce_option(self, "robot", as_int)
@@ -248,7 +261,12 @@ class MrclamOptions:
             object.__setattr__(self, "twin", None)
         if not (math.isfinite(self.slip) and 0.0 <= self.slip < 0.95):
             raise DatasetError(f"mrclam: slip must be in [0, 0.95), got {self.slip}")
-        coerce(self, groundtruth=GroundTruthChoice, calibration=CalibrationChoice)
+        coerce(
+            self,
+            groundtruth=GroundTruthChoice,
+            calibration=CalibrationChoice,
+            twin_values=TwinValues,
+        )
 
 
 @dataclass
@@ -396,38 +414,47 @@ def _calibrate(robot: _Robot, cal: MrclamCalibration) -> tuple[np.ndarray, np.nd
 
 
 def _model_twin(
-    robot: _Robot, odo: np.ndarray, seed: int, path: Path
+    robot: _Robot, odo: np.ndarray, ranges: np.ndarray, options: MrclamOptions, path: Path
 ) -> tuple[_Robot, np.ndarray, np.ndarray, dict[str, Any]]:
-    """The robot's model twin (hardware.datasets.model_twin): the sightings within the
-    ground truth's span with regenerated values (the robot's `sightings` with them, the
-    ranges as the calibration would give them), the odometry rows within the span with
-    regenerated velocities, and the metadata "twin"."""
+    """The robot's model twin (hardware.datasets.model_twin) from its calibrated odometry
+    and ranges: with twin_values "all" or "sightings" the sightings within the ground
+    truth's span with regenerated values (the robot's `sightings` with them; the ranges
+    as the calibration gives them), with "all" or "odometry" the odometry rows within
+    the span with regenerated velocities; and the metadata "twin"."""
     if robot.truth is None:
         raise DatasetError(f"{path}: twin needs ground truth for robot (groundtruth is none)")
     noise = TwinNoise.from_settings(DATASET1_LOCALIZER_SETTINGS)
-    odo_rng, sight_rng = twin_generators(seed)
-    twin_odo = twin_odometry(odo[:, 0], robot.truth, noise, odo_rng)
-    landmarks = dict(zip(robot.landmark_ids.tolist(), robot.landmarks[:, 1:3], strict=True))
-    xy = np.array([landmarks[i] for i in robot.sighting_ids.tolist()]).reshape(-1, 2)
-    kept, ranges, bearings = twin_sightings(
-        robot.sightings[:, 0], xy, robot.truth, noise, sight_rng
+    odo_rng, sight_rng = twin_generators(options.twin)
+    rows = len(odo)
+    if options.twin_values != TwinValues.SIGHTINGS:
+        odo = twin_odometry(odo[:, 0], robot.truth, noise, odo_rng)
+    kept = np.ones(len(ranges), bool)
+    if options.twin_values != TwinValues.ODOMETRY:
+        landmarks = dict(zip(robot.landmark_ids.tolist(), robot.landmarks[:, 1:3], strict=True))
+        xy = np.array([landmarks[i] for i in robot.sighting_ids.tolist()]).reshape(-1, 2)
+        kept, ranges, bearings = twin_sightings(
+            robot.sightings[:, 0], xy, robot.truth, noise, sight_rng
+        )
+        sightings = robot.sightings[kept].copy()
+        sightings[:, 2], sightings[:, 3] = ranges, bearings
+        robot = replace(robot, sightings=sightings, sighting_ids=robot.sighting_ids[kept])
+    what = {TwinValues.ALL: "odometry and sightings"}.get(
+        options.twin_values, f"the {options.twin_values} only"
     )
-    sightings = robot.sightings[kept].copy()
-    sightings[:, 2], sightings[:, 3] = ranges, bearings
-    robot = replace(robot, sightings=sightings, sighting_ids=robot.sighting_ids[kept])
     metadata = {
-        "seed": seed,
+        "seed": options.twin,
+        "values": str(options.twin_values),
         "noise": asdict(noise),
-        "odometry_rows_left_out": len(odo) - len(twin_odo),
+        "odometry_rows_left_out": rows - len(odo),
         "sightings_left_out": int(np.sum(~kept)),
         "note": (
-            "odometry and sightings regenerated from the ground truth with white noise "
+            f"{what} regenerated from the ground truth with white noise "
             "of the proposed levels, at the recorded times and IDs "
             "(hardware/datasets/model_twin.py); rows outside the ground truth's span "
             "left out"
         ),
     }
-    return robot, twin_odo, ranges, metadata
+    return robot, odo, ranges, metadata
 
 
 def _groundtruth_metadata(kind: str, files: dict[str, str], robot: int) -> dict[str, Any]:
@@ -538,7 +565,7 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
     odo, ranges = _calibrate(robot, cal)
     twin = None
     if options.twin is not None:
-        robot, odo, ranges, twin = _model_twin(robot, odo, options.twin, path)
+        robot, odo, ranges, twin = _model_twin(robot, odo, ranges, options, path)
     rb = robot.sightings
     calibration = WalkerCalibration(
         track_m=CREATE_TRACK_M,
@@ -557,7 +584,9 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
     )
     name = f"{folder.name}/robot{options.robot}"
     if options.twin is not None:
-        name += f"_twin{options.twin}"  # not the recorded values: never mixed up with them
+        # not the recorded values: never mixed up with them
+        parts = "" if options.twin_values == TwinValues.ALL else f"_{options.twin_values}"
+        name += f"_twin{options.twin}{parts}"
     metadata = _metadata(name, options, folder, robot, odo, cal)
     if twin is not None:
         metadata["twin"] = twin

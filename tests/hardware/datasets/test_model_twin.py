@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from datasets_testdata import data_dir, write_mrclam
+from datasets_testdata import assert_same_messages, data_dir, write_mrclam
 
 from experiments.config import configure
 from experiments.metrics import ate
@@ -165,12 +165,36 @@ def test_ekf_slam_on_robot3s_twin_beats_the_recorded_values():
     assert twin < 0.05 and twin < 0.7 * real
 
 
+@pytest.mark.data
+@pytest.mark.parametrize("values", ["odometry", "sightings"])
+def test_a_partial_twin_keeps_the_other_recorded_values(robot1, values):
+    real, twin = robot1
+    part = open_dataset("mrclam", data_dir("mrclam_dataset7"), robot=1, twin=0, twin_values=values)
+    assert part.name.endswith(f"robot1_twin0_{values}")
+    assert part.metadata["twin"]["values"] == values
+    kept, new = (
+        (RangeBearing, VelocityOdometry)
+        if values == "odometry"
+        else (VelocityOdometry, RangeBearing)
+    )
+    assert_same_messages(list(part.messages([kept])), list(real.messages([kept])))
+    assert_same_messages(list(part.messages([new])), list(twin.messages([new])))
+    assert (
+        part.metadata["twin"][
+            "sightings_left_out" if values == "odometry" else "odometry_rows_left_out"
+        ]
+        == 0
+    )
+
+
 def test_twin_needs_ground_truth_and_an_integer_seed(tmp_path):
     folder = write_mrclam(tmp_path)
     with pytest.raises(DatasetError, match="twin needs ground truth"):
         open_dataset("mrclam", folder, robot=1, groundtruth="none", twin=0)
     with pytest.raises(DatasetError, match="twin must be an integer"):
         open_dataset("mrclam", folder, robot=1, twin="x")
+    with pytest.raises(DatasetError, match="twin_values"):
+        open_dataset("mrclam", folder, robot=1, twin=0, twin_values="ranges")
     assert open_dataset("mrclam", folder, robot=1, twin="none").metadata.get("twin") is None
     # the synthetic folder's truth spans 999.9-1001.1 s: both landmark sightings are
     # kept; of the odometry, shifted by the calibration's 0.22 s, the rows at 1001.22 not
