@@ -378,7 +378,9 @@ class GridRbpf(ParticleFilter):
             best = self._best()
             times, paths = self.paths.paths(self.particles)
             path = paths[:, best, :] if len(times) else np.empty((0, 3))
-            t_now = self.track.last_t
+            # a correction after the last odometry message (a sighting after it) is the
+            # latest time: the path ends there
+            t_now = max(self.track.last_t, times[-1]) if len(times) else self.track.last_t
             if len(times) and times[-1] >= t_now:
                 times, path = times[:-1], path[:-1]
             times = np.append(times, t_now)

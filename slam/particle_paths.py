@@ -75,9 +75,12 @@ class ParticlePaths:
 
     def mean_path(self, weights: np.ndarray, t_now: float, poses_now: np.ndarray) -> Trajectory:
         """The weighted mean of the current particles' paths (circular mean of θ), ending
-        with their current poses at t_now."""
+        with their current poses at t_now, or at the last snapshot's time if that is
+        later (an observation after the last odometry message)."""
         w = np.asarray(weights, dtype=float)
         times, paths = self.paths(poses_now)
+        if len(times):
+            t_now = max(t_now, float(times[-1]))
         if len(times) and times[-1] >= t_now:
             times, paths = times[:-1], paths[:-1]
         times = np.append(times, t_now)
