@@ -8,7 +8,7 @@ import pytest
 from datasets_testdata import assert_same_messages, data_dir, write_mrclam
 
 from experiments.config import configure
-from experiments.metrics import ate
+from experiments.metrics import ate, landmark_rmse, trajectory_alignment
 from hardware.datasets import DatasetError, open_dataset
 from hardware.datasets.base import interpolate_poses
 from hardware.datasets.model_twin import TwinNoise, true_velocities, twin_odometry
@@ -141,28 +141,28 @@ def test_twin_is_seeded(robot1):
 
 
 @pytest.mark.data
-def test_ekf_slam_on_robot3s_twin_beats_the_recorded_values():
-    """Robot 3's recorded odometry breaks the model (its speed is over-reported by ~5 %
-    on dataset 7): EKF-SLAM's error on the twin is the data's limit, well below."""
-    folder = data_dir("mrclam_dataset7")
-    errors = []
-    for ds in (
-        open_dataset("mrclam", folder, robot=3),
-        open_dataset("mrclam", folder, robot=3, twin=0),
-    ):
-        config = configure(LOCALIZERS, "ekf-slam", ds.metadata).config
-        loc = create("ekf-slam", ds.calibration, config, initial_pose=ds.initial_pose)
-        truth_t, truth = [], []
-        for m in ds.messages():
-            if isinstance(m, GroundTruthPose):
-                truth_t.append(m.t)
-                truth.append((m.x, m.y, m.theta))
-            else:
-                loc.process(m)
-        errors.append(ate(loc.trajectory(), Trajectory(np.array(truth_t), np.array(truth))))
-    real, twin = (e["ate_rmse_m"] for e in errors)
-    # measured: 0.074 m recorded, 0.036 m on the twin
-    assert twin < 0.05 and twin < 0.7 * real
+def test_ekf_slam_on_robot3s_twin_is_as_good_as_its_model():
+    """On the twin, whose data follow EKF-SLAM's model, the map and the path come out as
+    the model's noise allows. Measured (twin seeds 0 / 1): ATE 0.049 / 0.039 m, landmark
+    RMSE 0.014 / 0.025 m; on the recorded values 0.047 / 0.032 m (0.074 / 0.054 with
+    the speed noise of before 2026-12-03, which the recorded odometry broke)."""
+    ds = open_dataset("mrclam", data_dir("mrclam_dataset7"), robot=3, twin=0)
+    config = configure(LOCALIZERS, "ekf-slam", ds.metadata).config
+    loc = create("ekf-slam", ds.calibration, config, initial_pose=ds.initial_pose)
+    truth_t, truth = [], []
+    for m in ds.messages():
+        if isinstance(m, GroundTruthPose):
+            truth_t.append(m.t)
+            truth.append((m.x, m.y, m.theta))
+        else:
+            loc.process(m)
+    est, gt = loc.trajectory(), Trajectory(np.array(truth_t), np.array(truth))
+    assert ate(est, gt)["ate_rmse_m"] < 0.06
+    surveyed = {int(i): xy for i, xy in ds.metadata["landmarks"].items()}
+    mapped = {lid: mean for lid, (mean, _) in loc.landmarks().items()}
+    seen = {m.landmark_id for m in ds.messages([RangeBearing])}
+    assert set(mapped) == seen
+    assert landmark_rmse(mapped, surveyed, trajectory_alignment(est, gt)) < 0.03
 
 
 @pytest.mark.data
