@@ -88,6 +88,18 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.column_stack([(c * x - s * y) + pose[0], (s * x + c * y) + pose[1]])
 
 
+def rotation(theta: float, size: int = 2) -> np.ndarray:
+    """The matrix that rotates (x, y) by theta: 2×2, or with size 3 a pose's (x, y, θ)
+    with θ left as it is (e.g. a pose covariance from a body frame to the world's,
+    R·P·Rᵀ)."""
+    c, s = math.cos(theta), math.sin(theta)
+    if size == 2:
+        return np.array([[c, -s], [s, c]])
+    if size == 3:
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    raise ValueError(f"rotation size must be 2 or 3, got {size}")
+
+
 def to_matrix(pose: np.ndarray) -> np.ndarray:
     """3×3 homogeneous matrix of one pose."""
     x, y, th = _as_poses(pose)

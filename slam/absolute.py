@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from hardware.geometry import wrap_angle
+from hardware.geometry import rotation, wrap_angle
 from hardware.messages import CompassHeading, Message, PositionFix
 from slam.measurement import robust_log_likelihood
 
@@ -168,6 +168,5 @@ def offset_position(pose: np.ndarray, offset: np.ndarray) -> np.ndarray:
 def offset_position_jacobian(pose: np.ndarray, offset: np.ndarray) -> np.ndarray:
     """∂offset_position/∂ξ (2×3) for the body-frame perturbation pose ∘ Exp(ξ), ξ = (vx,
     vy, ω) as gtsam's Pose2 tangent: [R(θ) | R(θ)·(−dy, dx)ᵀ]."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    rot = np.array([[c, -s], [s, c]])
+    rot = rotation(pose[2])
     return np.column_stack([rot, rot @ np.array([-offset[1], offset[0]])])

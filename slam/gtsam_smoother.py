@@ -128,7 +128,7 @@ from gtsam.symbol_shorthand import L, S, T, X
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
-from hardware.geometry import compose, transform_points, wrap_angle
+from hardware.geometry import compose, rotation, transform_points, wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
 from hardware.small_linalg import congruence, dot, eigh2, matmul, solve
@@ -489,9 +489,7 @@ def position_factor(
 def _body_covariance(cov: np.ndarray, theta: float) -> np.ndarray:
     """The covariance of a match (x, y in the reference frame, θ) in the Pose2 tangent
     space (x, y in the matched pose's own frame, θ), as BetweenFactorPose2 expects."""
-    c, s = math.cos(theta), math.sin(theta)
-    a = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    out = congruence(a, cov)
+    out = congruence(rotation(theta, 3).T, cov)
     return 0.5 * (out + out.T)
 
 
@@ -881,9 +879,8 @@ class GtsamSmoother(Localizer):
         c = self.config
         cov_rb = np.diag([sr * sr, (r * c.bearing_sigma_rad) ** 2])
         a = b - psi
-        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
         cov = np.zeros((3, 3))
-        cov[:2, :2] = congruence(rot, cov_rb)
+        cov[:2, :2] = congruence(rotation(a), cov_rb)
         cov[2, 2] = (c.yaw_sigma_rad + c.yaw_sigma_per_m2 * r * r) ** 2
         noise = gtsam.noiseModel.Robust.Create(
             gtsam.noiseModel.mEstimator.Huber.Create(c.huber_k),
@@ -1193,8 +1190,7 @@ class GtsamSmoother(Localizer):
         tangent) plus the odometry's since, rotated into the world frame."""
         if self._marginal is None:
             self._marginal = self.isam.marginalCovariance(X(self._kf))
-        c, s = math.cos(self._kf_pose[2]), math.sin(self._kf_pose[2])
-        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        rot = rotation(self._kf_pose[2], 3)
         cov = congruence(rot, self._marginal + self._delta_cov + self._unknown)
         return compose(self._kf_pose, self._delta), cov
 
@@ -1222,8 +1218,7 @@ class GtsamSmoother(Localizer):
         for lid in sorted(self._landmarks):
             if self._tags:  # a Pose2: its position and that block of the marginal
                 tag = values.atPose2(T(lid))
-                c, s = math.cos(tag.theta()), math.sin(tag.theta())
-                rot = np.array([[c, -s], [s, c]])  # the marginal is in the tag's frame
+                rot = rotation(tag.theta())  # the marginal is in the tag's frame
                 cov = congruence(rot, self.isam.marginalCovariance(T(lid))[:2, :2])
                 out[lid] = (np.array([tag.x(), tag.y()]), cov)
             else:

@@ -7,6 +7,7 @@ from hardware.geometry import (
     compose,
     from_matrix,
     inverse,
+    rotation,
     to_matrix,
     wrap_angle,
 )
@@ -59,3 +60,16 @@ def test_se3_inverse_and_points():
     assert np.allclose(t @ invert_transform(t), np.eye(4))
     pts = rng.normal(size=(10, 3))
     assert np.allclose(transform_points(invert_transform(t), transform_points(t, pts)), pts)
+
+
+def test_rotation_turns_points_as_a_pose_does_and_keeps_the_heading():
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(-3, 3, (10, 2))
+    for th in rng.uniform(-4, 4, 5):
+        assert pts @ rotation(th).T == pytest.approx(tp2(np.array([0.0, 0.0, th]), pts))
+        r3 = rotation(th, 3)
+        assert r3[:2, :2] == pytest.approx(rotation(th)) and r3[2].tolist() == [0, 0, 1]
+        assert r3[:, 2].tolist() == [0, 0, 1]
+        assert rotation(th) @ rotation(-th) == pytest.approx(np.eye(2))
+    with pytest.raises(ValueError, match="2 or 3"):
+        rotation(0.1, 4)
