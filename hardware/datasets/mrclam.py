@@ -264,13 +264,15 @@ class MrclamOptions:
         else:
             object.__setattr__(self, "twin", None)
         if not (math.isfinite(self.slip) and 0.0 <= self.slip < 0.95):
-            raise DatasetError(f"mrclam: slip must be in [0, 0.95), got {self.slip}")
+            raise ValueError(f"slip must be in [0, 0.95), got {self.slip}")
         coerce(
             self,
             groundtruth=GroundTruthChoice,
             calibration=CalibrationChoice,
             twin_values=TwinValues,
         )
+        if self.twin is None and self.twin_values != TwinValues.ALL:
+            raise ValueError(f"twin_values={self.twin_values} needs twin=SEED")
 
 
 @dataclass

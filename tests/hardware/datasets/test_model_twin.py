@@ -195,6 +195,8 @@ def test_twin_needs_ground_truth_and_an_integer_seed(tmp_path):
         open_dataset("mrclam", folder, robot=1, twin="x")
     with pytest.raises(DatasetError, match="twin_values"):
         open_dataset("mrclam", folder, robot=1, twin=0, twin_values="ranges")
+    with pytest.raises(DatasetError, match="twin_values=odometry needs twin=SEED"):
+        open_dataset("mrclam", folder, robot=1, twin_values="odometry")
     assert open_dataset("mrclam", folder, robot=1, twin="none").metadata.get("twin") is None
     # the synthetic folder's truth spans 999.9-1001.1 s: both landmark sightings are
     # kept; of the odometry, shifted by the calibration's 0.22 s, the rows at 1001.22 not
