@@ -57,7 +57,7 @@ from mapping.mapper import MapperConfig, OccupancyMapper, Projection
 from slam.base import PoseEstimate
 from slam.grid_kernels import draw, propose
 from slam.particle_filter import ParticleFilter, ParticleFilterConfig, ParticleSettings
-from slam.particle_paths import ParticlePaths
+from slam.particle_paths import ParticlePaths, path_end
 from slam.scan_proposal import ProposalLattice
 from slam.trajectory import Trajectory
 
@@ -378,11 +378,7 @@ class GridRbpf(ParticleFilter):
             best = self._best()
             times, paths = self.paths.paths(self.particles)
             path = paths[:, best, :] if len(times) else np.empty((0, 3))
-            # a correction after the last odometry message (a sighting after it) is the
-            # latest time: the path ends there
-            t_now = max(self.track.last_t, times[-1]) if len(times) else self.track.last_t
-            if len(times) and times[-1] >= t_now:
-                times, path = times[:-1], path[:-1]
+            times, path, t_now = path_end(times, path, self.track.last_t)
             times = np.append(times, t_now)
             path = np.vstack([path, self.particles[best]])
             self._path_cache = (key, Trajectory(times, self._spread(times, path, best)))

@@ -19,6 +19,21 @@ import numpy as np
 from slam.trajectory import Trajectory
 
 
+def path_end(
+    times: np.ndarray, rows: np.ndarray, t_now: float
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Where a path read from the snapshots ends with the current poses: at t_now (the
+    last odometry message), or at the last snapshot's time if that is later (an
+    observation after the last odometry message). Returns the snapshots before the end,
+    their rows, and the end's time (a snapshot at the end is left out: the current poses
+    take its place)."""
+    if len(times):
+        t_now = max(t_now, float(times[-1]))
+        if times[-1] >= t_now:
+            times, rows = times[:-1], rows[:-1]
+    return times, rows, t_now
+
+
 class ParticlePaths:
     """Snapshots of particle poses (float32, at most one per `every_s` seconds) and the
     resampling events between them. replace_same_time=False keeps every snapshot of one
@@ -75,14 +90,9 @@ class ParticlePaths:
 
     def mean_path(self, weights: np.ndarray, t_now: float, poses_now: np.ndarray) -> Trajectory:
         """The weighted mean of the current particles' paths (circular mean of θ), ending
-        with their current poses at t_now, or at the last snapshot's time if that is
-        later (an observation after the last odometry message)."""
+        with their current poses (`path_end`)."""
         w = np.asarray(weights, dtype=float)
-        times, paths = self.paths(poses_now)
-        if len(times):
-            t_now = max(t_now, float(times[-1]))
-        if len(times) and times[-1] >= t_now:
-            times, paths = times[:-1], paths[:-1]
+        times, paths, t_now = path_end(*self.paths(poses_now), t_now)
         times = np.append(times, t_now)
         paths = np.concatenate([paths, np.asarray(poses_now, dtype=float)[None]])
         xy = np.einsum("n,tnk->tk", w, paths[:, :, :2])

@@ -70,10 +70,8 @@ def true_velocities(
     poses = interpolate_poses(truth_t, truth_poses, t)
     rel = between(poses[:-1], poses[1:])
     dth = poses[1:, 2] - poses[:-1, 2]  # unwrapped: a turn of any size
-    half = 0.5 * dth
-    sinc = np.where(np.abs(half) > 1e-9, np.sin(half) / np.where(half == 0, 1.0, half), 1.0)
     sign = np.where(rel[:, 0] < 0, -1.0, 1.0)
-    ds = sign * np.hypot(rel[:, 0], rel[:, 1]) / sinc
+    ds = sign * np.hypot(rel[:, 0], rel[:, 1]) / np.sinc(0.5 * dth / np.pi)  # sin(u)/u
     dt = np.diff(t)
     moving = dt > 0
     v, w = np.zeros(len(t)), np.zeros(len(t))

@@ -533,7 +533,8 @@ def _metadata(
     odo: np.ndarray,
     cal: MrclamCalibration,
 ) -> dict[str, dict[str, Any]]:
-    """All the metadata (module docstring); "localizer_settings" with the calibration."""
+    """All the metadata (module docstring); "localizer_settings" with the calibration
+    or a twin (drawn with those noise levels)."""
     if robot.truth is not None:
         initial = interpolate_pose(*robot.truth, float(odo[0, 0]))
     else:
@@ -556,7 +557,7 @@ def _metadata(
         "groundtruth": _groundtruth_metadata(robot.gt_kind, robot.files, options.robot),
         "sensor_calibration": _sensor_calibration_metadata(options.calibration, cal),
     }
-    if options.calibration != CalibrationChoice.NONE:
+    if options.calibration != CalibrationChoice.NONE or options.twin is not None:
         metadata["localizer_settings"] = dict(DATASET1_LOCALIZER_SETTINGS)
     return metadata
 
@@ -596,7 +597,6 @@ def open_mrclam(options: MrclamOptions, path: Path) -> Dataset:
     metadata = _metadata(name, options, folder, robot, odo, cal)
     if twin is not None:
         metadata["twin"] = twin
-        metadata["localizer_settings"] = dict(DATASET1_LOCALIZER_SETTINGS)
     if slipped is not None:
         # after the odometry at equal times: a row's brake holds from it on, as its velocity
         commands = slipped.brake_commands(calibration.brake)

@@ -47,18 +47,23 @@ class RangeFit:
     rms_m: float
 
 
+def truth_table(ds: Dataset, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """ds's ground truth as (times, poses (N, 3)); a DatasetError naming `what` would be
+    fitted when it has fewer than two poses."""
+    gt = list(ds.messages([GroundTruthPose]))
+    if len(gt) < 2:
+        raise DatasetError(f"{ds.name}: no ground truth to fit {what} against")
+    return np.array([m.t for m in gt]), np.array([(m.x, m.y, m.theta) for m in gt])
+
+
 def sighting_geometry(ds: Dataset) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(recorded range, recorded bearing, true forward, true lateral offset [m]) of each
     landmark sighting within the ground truth's span: the landmark's surveyed position
     in the frame of the true pose, interpolated at the sighting (linear in x, y and the
     unwrapped heading)."""
-    gt = list(ds.messages([GroundTruthPose]))
-    if len(gt) < 2:
-        raise DatasetError(f"{ds.name}: no ground truth to fit the range calibration against")
-    t = np.array([m.t for m in gt])
+    t, poses = truth_table(ds, "the range calibration")
     rb = [m for m in ds.messages([RangeBearing]) if t[0] <= m.t <= t[-1]]
-    at = np.array([m.t for m in rb])
-    pose = interpolate_poses(t, np.array([(m.x, m.y, m.theta) for m in gt]), at)
+    pose = interpolate_poses(t, poses, np.array([m.t for m in rb]))
     lm = np.array([ds.metadata["landmarks"][str(m.landmark_id)] for m in rb]).reshape(-1, 2)
     seen = between(pose, np.column_stack([lm, np.zeros(len(lm))]))
     forward, lateral = seen[:, 0], seen[:, 1]
@@ -112,11 +117,7 @@ def velocity_noise(datasets: list[Dataset], window_s: float, step_s: float = 0.0
     n = max(round(window_s / step_s), 1)
     err2 = var = 0.0
     for ds in datasets:
-        gt = list(ds.messages([GroundTruthPose]))
-        if len(gt) < 2:
-            raise DatasetError(f"{ds.name}: no ground truth to fit the odometry noise against")
-        truth_t = np.array([m.t for m in gt])
-        poses = np.array([(m.x, m.y, m.theta) for m in gt])
+        truth_t, poses = truth_table(ds, "the odometry noise")
         odo = np.array([(m.t, m.v) for m in ds.messages([VelocityOdometry])])
         lattice = np.arange(max(odo[0, 0], truth_t[0]), min(odo[-1, 0], truth_t[-1]), step_s)
         true_v, _ = true_velocities(lattice, truth_t, poses)

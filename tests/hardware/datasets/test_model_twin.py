@@ -12,6 +12,7 @@ from experiments.metrics import ate, landmark_rmse, trajectory_alignment
 from hardware.datasets import DatasetError, open_dataset
 from hardware.datasets.base import interpolate_poses
 from hardware.datasets.model_twin import TwinNoise, true_velocities, twin_odometry
+from hardware.datasets.mrclam_fit import truth_table
 from hardware.geometry import wrap_angle
 from hardware.messages import GroundTruthPose, RangeBearing, VelocityOdometry
 from slam.base import LOCALIZERS, create
@@ -60,15 +61,10 @@ def robot1():
     )
 
 
-def _truth(ds):
-    gt = [m for m in ds.messages([GroundTruthPose])]
-    return np.array([m.t for m in gt]), np.array([(m.x, m.y, m.theta) for m in gt])
-
-
 @pytest.mark.data
 def test_twin_keeps_the_recorded_schedule(robot1):
     real, twin = robot1
-    truth_t, _ = _truth(real)
+    truth_t, _ = truth_table(real, "")
     inside = lambda m: truth_t[0] <= m.t <= truth_t[-1]  # noqa: E731
     real_rb = [m for m in real.messages([RangeBearing]) if inside(m)]
     twin_rb = list(twin.messages([RangeBearing]))
@@ -97,7 +93,7 @@ def test_twin_keeps_the_recorded_schedule(robot1):
 def test_twin_noise_has_the_models_size(robot1):
     _, twin = robot1
     noise = TwinNoise(**twin.metadata["twin"]["noise"])
-    truth = _truth(twin)
+    truth = truth_table(twin, "")
     rb = list(twin.messages([RangeBearing]))
     pose = interpolate_poses(*truth, np.array([m.t for m in rb]))
     xy = np.array([twin.metadata["landmarks"][str(m.landmark_id)] for m in rb])
