@@ -61,7 +61,7 @@ from slam.measurement import (
 from slam.motion import Cov3, Increment, MotionNoise, OdometryModel, propagate, split_increment
 from slam.rts import rts_smooth
 from slam.slip import SlipEstimation, predict_with_slip, slip_diagnostics
-from slam.state_smoother import StateSmoother, StepOdometry, bridge
+from slam.state_smoother import StateSmoother, StepOdometry, bridge, epoch_step
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 
@@ -228,8 +228,10 @@ class EkfSlam(Localizer):
         if self.revises_past:
             self._f_inc.add(step.ds, step.dtheta, step.q)
 
-    def _sync(self) -> None:
-        """Bring the full state up to date with the predictions since the last update."""
+    def _sync(self, between: bool = False) -> None:
+        """Bring the full state up to date with the predictions since the last update;
+        between: for an observation made after the last recorded step (its epoch leads
+        to the next step)."""
         if not self._stale:
             return
         self._stale = False
@@ -241,7 +243,8 @@ class EkfSlam(Localizer):
                 else (self._pose, self._cov3)
             )
             bk = self._bk if self._slip else None
-            self._full.begin(max(len(self.track) - 1, 0), self._x, self._P, a, b, bk, *top)
+            step = epoch_step(len(self.track), between)
+            self._full.begin(step, self._x, self._P, a, b, bk, *top)
         self._x[:3] = self._pose
         p = self._P
         n = 5 if self._slip else 3  # where the landmarks start
@@ -281,7 +284,7 @@ class EkfSlam(Localizer):
     def _observe(self, obs: LandmarkObservation, between: bool = False) -> None:
         """Update with one message's observations; between: made after the last
         recorded step (align_observations), which then keeps its pose and covariance."""
-        self._sync()
+        self._sync(between)
         unknown = []
         for lid, z in zip(obs.ids, obs.z, strict=True):
             lid = int(lid)

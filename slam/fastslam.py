@@ -155,7 +155,13 @@ from slam.motion import (
 from slam.particle_paths import ParticlePaths
 from slam.rts import rts_smooth
 from slam.slip import SlipEstimation, increment_with_slip, slip_diagnostics
-from slam.state_smoother import StateSmoother, StepOdometry, bridge, bridge_covariances
+from slam.state_smoother import (
+    StateSmoother,
+    StepOdometry,
+    bridge,
+    bridge_covariances,
+    epoch_step,
+)
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 __all__ = [
@@ -474,7 +480,7 @@ class FastSlam(Localizer):
             for obs in self._aligned:  # sightings made since the last odometry message
                 part, inc = split_increment(inc, obs.t)
                 self._move(part)
-                self._use(obs)
+                self._use(obs, between=True)
             self._aligned = []
             self._move(inc)
             self._record(msg.t)
@@ -562,7 +568,9 @@ class FastSlam(Localizer):
         self.hits, self.born = grown(self.hits), grown(self.born)
         self.reserved = np.concatenate([self.reserved, np.zeros(new_cap - cap, dtype=bool)])
 
-    def _use(self, obs: LandmarkObservation) -> None:
+    def _use(self, obs: LandmarkObservation, between: bool = False) -> None:
+        """Update with one message's sightings; between: made after the last recorded
+        step (align_observations)."""
         items: list[tuple[int, np.ndarray]] = []
         unknown: list[np.ndarray] = []
         for lid, z, yaw in zip(obs.ids, obs.z, obs.yaw, strict=True):
@@ -576,9 +584,15 @@ class FastSlam(Localizer):
                 zz = np.array([z[0], z[1], yaw]) if self.dim == 3 else np.asarray(z, dtype=float)
                 items.append((int(lid), zz))
         if items or unknown:
-            self._update(obs.t, items, np.array(unknown).reshape(-1, 2))
+            self._update(obs.t, items, np.array(unknown).reshape(-1, 2), between)
 
-    def _update(self, t: float, items: list[tuple[int, np.ndarray]], unknown: np.ndarray) -> None:
+    def _update(
+        self,
+        t: float,
+        items: list[tuple[int, np.ndarray]],
+        unknown: np.ndarray,
+        between: bool = False,
+    ) -> None:
         """The landmark observations of one time (`_update_particles`); for "rts-full" an
         epoch of the state smoother: the prediction into it from the particles' moments
         before, the filtered state after."""
@@ -587,7 +601,7 @@ class FastSlam(Localizer):
         pred = self._prediction() if self._full is not None else None
         if self._update_particles(t, items, unknown) and self._full is not None:
             x, p, _ = self._end
-            self._full.begin_sampled(max(len(self.track) - 1, 0), x, p, *pred)
+            self._full.begin_sampled(epoch_step(len(self.track), between), x, p, *pred)
             if self._full.exceeded is not None:
                 budget = self.config.smoother_budget_mb
                 self._stop_full(f"its moments went over smoother_budget_mb ({budget:g} MB)")

@@ -39,9 +39,11 @@ Between two epochs the walker moved on odometry alone: `bridge` takes each stret
 filtered poses moved rigidly onto the smoothed pose of the epoch that starts it, their
 covariance grown from zero there (`bridge_covariances`), and the pose-only smoother
 (slam.rts.rts_smooth) then spreads the mismatch with the next epoch's smoothed pose
-over the stretch by the odometry's uncertainty; an epoch's pose, known, stays. (An
-observation placed inside an odometry step, `align_observations`, makes an epoch that
-is anchored at the step recorded before it: up to one odometry message early.)
+over the stretch by the odometry's uncertainty; an epoch's pose, known, stays. An
+observation placed inside an odometry step (`align_observations`) makes an epoch that
+leads to the step recorded after it (`epoch_step`): the rest of that step's odometry
+moved its corrected pose there, while the step before it still has the pose from before
+the correction (anchored there, the path would step back by the correction).
 
 Memory: one n × n covariance per epoch (n = 3 + 2 · landmarks): MRCLAM's robots, 15
 landmarks and ~2500 epochs, ~22 MB; Victoria Park's hundreds of trees would take
@@ -180,6 +182,12 @@ class StateSmoother:
         if self.landmark_dim != 3:
             return np.array([2])
         return np.r_[2, np.arange(self.top + 2, n, 3)]
+
+
+def epoch_step(recorded: int, between: bool) -> int:
+    """The trajectory step an epoch's updates lead to, `recorded` steps so far: the last
+    one, or (between: an observation made after it, align_observations) the next."""
+    return recorded if between else max(recorded - 1, 0)
 
 
 class StepOdometry:
