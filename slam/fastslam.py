@@ -593,13 +593,18 @@ class FastSlam(Localizer):
         unknown: np.ndarray,
         between: bool = False,
     ) -> None:
-        """The landmark observations of one time (`_update_particles`); for "rts-full" an
-        epoch of the state smoother: the prediction into it from the particles' moments
-        before, the filtered state after."""
+        """The landmark observations of one time (`_update_particles`): the trajectory's
+        latest pose takes the corrected mean (not when they were made after it: between);
+        for "rts-full" an epoch of the state smoother: the prediction into it from the
+        particles' moments before, the filtered state after."""
         if self._full is not None and len(unknown):
             self._stop_full("sightings without an ID were used")
         pred = self._prediction() if self._full is not None else None
-        if self._update_particles(t, items, unknown) and self._full is not None:
+        if not self._update_particles(t, items, unknown):
+            return
+        if not between:
+            self.track.amend(self._mean_pose())
+        if self._full is not None:
             x, p, _ = self._end
             self._full.begin_sampled(epoch_step(len(self.track), between), x, p, *pred)
             if self._full.exceeded is not None:
@@ -694,7 +699,6 @@ class FastSlam(Localizer):
         if m:
             self._found_landmarks(t, cols_u, status)
         self._normalise(logw)  # 4.
-        self.track.amend(self._mean_pose())
         self.revision += 1
         return True
 

@@ -324,6 +324,43 @@ def test_whole_state_smoothing_keeps_the_step_before_an_aligned_observation(name
     assert not odd.any(), np.round(step[odd], 4)
 
 
+@pytest.mark.parametrize("name", ["ekf-slam", "fastslam"])
+def test_an_aligned_observation_leaves_the_step_before_it_as_recorded(name):
+    """An observation held for the next odometry message corrects the pose of its own
+    time, not the recorded step before it: that step's filtered pose stays the one it
+    was recorded with (fastslam replaced it by the corrected pose of 10 ms later, which
+    the whole-state smoother then bridged from as if it were the step's)."""
+    m = CAL.metres_per_count
+    landmarks = {1: (3.0, 1.0), 2: (3.5, -1.2)}
+
+    def sightings(t):
+        x = t  # the truth drives at 1 m/s; the encoders report 10 % short
+        return [
+            RangeBearing(t, i, math.hypot(u - x, v), math.atan2(v, u - x))
+            for i, (u, v) in landmarks.items()
+        ]
+
+    msgs = [EncoderTicks(0.0, 0, 0)]
+    for k in range(1, 26):
+        t = 0.02 * k
+        msgs += sightings(t - 0.01) if k in (1, 25) else []
+        msgs.append(EncoderTicks(t, math.floor(0.9 * t / m), math.floor(0.9 * t / m)))
+    sensor = {**_EXACT_SENSOR, "noise": MotionNoise(wheel_m=1e-3)}
+    config = LOCALIZERS.spec(name).config_type(align_observations=True, smoother="none", **sensor)
+    loc, unseen = create(name, CAL, config), create(name, CAL, config)
+    for msg in msgs[:-3]:  # up to the encoder message at 0.48 s
+        loc.process(msg)
+        unseen.process(msg)
+    before = loc.trajectory()
+    assert before.t[-1] == pytest.approx(0.48)
+    for msg in msgs[-3:]:  # the sightings of 0.49 s, then the encoders at 0.50 s
+        loc.process(msg)
+    unseen.process(msgs[-1])
+    after = loc.trajectory()
+    np.testing.assert_array_equal(after.poses[: len(before.t)], before.poses)
+    assert after.poses[-1, 0] - unseen.trajectory().poses[-1, 0] > 0.02  # it corrected
+
+
 _EXACT_SENSOR = {
     "range_sigma_m": 0.01,
     "range_sigma_frac": 0.0,
