@@ -57,6 +57,7 @@ from slam.measurement import (
     placed_sightings,
     range_bearing,
     range_bearing_jacobians,
+    range_sigma,
 )
 from slam.motion import Cov3, Increment, MotionNoise, OdometryModel, propagate, split_increment
 from slam.rts import rts_smooth
@@ -274,9 +275,8 @@ class EkfSlam(Localizer):
 
     def _variances(self, range_m: float) -> tuple[float, float]:
         """Range and bearing variances of an observation at this range."""
-        c = self.config
-        sr = c.range_sigma_m + c.range_sigma_frac * range_m
-        return sr * sr, c.bearing_sigma_rad**2
+        sr = range_sigma(self.config, range_m)
+        return sr * sr, self.config.bearing_sigma_rad**2
 
     def _noise(self, z: np.ndarray) -> np.ndarray:
         return np.diag(self._variances(float(z[0])))

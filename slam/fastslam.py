@@ -143,6 +143,7 @@ from slam.measurement import (
     landmark_from_range_bearing_jacobians,
     range_bearing,
     range_bearing_jacobians,
+    range_sigma,
 )
 from slam.motion import (
     Increment,
@@ -525,7 +526,7 @@ class FastSlam(Localizer):
     def _noise(self, z: np.ndarray) -> list[float]:
         """The variances of z's components (R is diagonal)."""
         c = self.config
-        sr = c.range_sigma_m + c.range_sigma_frac * z[0]
+        sr = range_sigma(c, z[0])
         diag = [sr * sr, c.bearing_sigma_rad**2]
         if self.dim == 3:
             sy = c.yaw_sigma_rad + c.yaw_sigma_per_m2 * z[0] ** 2

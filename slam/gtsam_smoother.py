@@ -159,6 +159,7 @@ from slam.measurement import (
     placed_sightings,
     range_bearing,
     range_bearing_jacobians,
+    range_sigma,
 )
 from slam.motion import (
     Increment,
@@ -792,7 +793,7 @@ class GtsamSmoother(Localizer):
 
     def _range_sigma(self, r: float | np.ndarray) -> float | np.ndarray:
         """The range σ of sightings at range(s) r."""
-        return self.config.range_sigma_m + self.config.range_sigma_frac * r
+        return range_sigma(self.config, r)
 
     def _range_bearing_factor(self, lid: int, z: np.ndarray) -> None:
         """A Huber-robust BearingRangeFactor2D from the latest keyframe to L(lid)."""

@@ -46,6 +46,12 @@ RANGE_SIGMA_FRAC = 0.05
 BEARING_SIGMA_RAD = 0.005
 
 
+def range_sigma(config, r):
+    """The range σ of sightings at range(s) r by a localizer's config: its range_sigma_m +
+    range_sigma_frac · r (a float, or an array like r)."""
+    return config.range_sigma_m + config.range_sigma_frac * r
+
+
 def robust_log_likelihood(
     log_gauss: np.ndarray, log_norm: np.ndarray | float, outlier_prob: float, log_outlier: float
 ) -> np.ndarray:

@@ -104,6 +104,7 @@ from slam.measurement import (
     LandmarkObservation,
     Sightings,
     range_bearing,
+    range_sigma,
     robust_log_likelihood,
 )
 from slam.motion import (
@@ -458,7 +459,7 @@ class ParticleFilter(Localizer):
         self._draw_odometry_noise(obs.t)
         c = self.pf
         z = obs.z[rows + unknown]  # (M, 2)
-        sr = c.range_sigma_m + c.range_sigma_frac * z[:, 0]  # (M,)
+        sr = range_sigma(c, z[:, 0])  # (M,)
         log_gauss = np.empty((len(self.particles), len(z)))  # (N, M), without the normaliser
         k = len(rows)
         if rows:
