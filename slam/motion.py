@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -233,7 +233,8 @@ class Increment:
     velocity odometry, the distances its (v, ω) stand for on the calibration's track);
     brake_level, each brake's commanded level in [0, 1] over the increment; unknown: the
     odometry did not measure this motion (a gap: velocity odometry of NaN), so ds = dθ = 0
-    and cov is MotionNoise.unknown_sigma's."""
+    and cov is MotionNoise.unknown_sigma's; gyro_turn: dθ is a gyro's (`slam.gyro`), which
+    slip does not bias, so a slip estimate corrects ds alone."""
 
     t: float
     dt: float
@@ -243,6 +244,7 @@ class Increment:
     wheels: tuple[float, float] | None = None
     brake_level: tuple[float, float] = (0.0, 0.0)
     unknown: bool = False
+    gyro_turn: bool = False
 
 
 def split_increment(inc: Increment, t: float) -> tuple[Increment, Increment]:
@@ -265,6 +267,7 @@ def split_increment(inc: Increment, t: float) -> tuple[Increment, Increment]:
                 wheels,
                 inc.brake_level,
                 inc.unknown,
+                inc.gyro_turn,
             )
         )
     return parts[0], parts[1]
@@ -360,7 +363,7 @@ class OdometryModel:
             return inc
         dtheta, var = fused
         cov = np.array([[float(inc.cov[0, 0]), 0.0], [0.0, var]])
-        return Increment(inc.t, inc.dt, inc.ds, dtheta, cov)
+        return replace(inc, dtheta=dtheta, cov=cov, gyro_turn=True)
 
     def diagnostics(self) -> dict:
         """The gyro's bias and scale estimates, windows, fallbacks (empty without it)."""

@@ -58,11 +58,16 @@ def increment_with_slip(
     inc: Increment, k: np.ndarray, track: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(ds, dθ, J = ∂(ds, dθ)/∂k) of an increment at slip coefficients k (..., 2); an
-    increment without wheel distances is its own (ds, dθ), J = 0."""
+    increment without wheel distances is its own (ds, dθ), J = 0; one whose turn is a
+    gyro's keeps that turn (dθ's row of J is 0) and has its distance corrected."""
     if inc.wheels is None:
         shape = np.shape(k)[:-1]
         return np.full(shape, inc.ds), np.full(shape, inc.dtheta), np.zeros((*shape, 2, 2))
-    return slip_corrected(inc.wheels, inc.brake_level, k, track)
+    ds, dtheta, j = slip_corrected(inc.wheels, inc.brake_level, k, track)
+    if inc.gyro_turn:
+        dtheta = np.full(np.shape(ds), inc.dtheta)
+        j[..., 1, :] = 0.0
+    return ds, dtheta, j
 
 
 class SlipStep(NamedTuple):

@@ -131,6 +131,40 @@ def test_split_increment_composes_to_the_whole():
     assert before.ds == 0.0 and before.dt == 0.0
 
 
+def test_a_gyro_turn_is_kept_and_the_slipped_distance_corrected():
+    """With the gyro (slam.gyro) the turn is measured, not counted: slip estimation then
+    corrects the distance alone. The gyro-fused increment keeps its wheel distances and
+    brake levels; its turn is the gyro's at any k, and dθ's row of J is 0."""
+    from hardware.messages import GyroRate
+    from slam.gyro import GyroFusion
+    from slam.slip import increment_with_slip
+
+    model = OdometryModel(CAL, MotionNoise(gyro=GyroFusion(enabled=True)))
+    brake = CAL.brake
+    half = brake.torque_off_nm + 0.5 * (brake.torque_max_nm - brake.torque_off_nm)
+    for msg in (
+        GyroRate(0.0, 0.0),
+        EncoderTicks(0.0, 0, 0),
+        BrakeCommand(0.0, half, brake.torque_off_nm),
+        GyroRate(0.1, 0.4),
+    ):
+        model.increment(msg)
+    inc = model.increment(EncoderTicks(0.1, 90, 100))
+    m = CAL.metres_per_count
+    assert inc.gyro_turn and inc.wheels == pytest.approx((90 * m, 100 * m))
+    assert inc.brake_level == pytest.approx((0.5, 0.0))
+    assert inc.dtheta != pytest.approx(wheel_increment(90 * m, 100 * m, TRACK)[1])
+    k = np.array([[0.0, 0.0], [0.3, 0.1]])
+    ds, dth, jac = increment_with_slip(inc, k, TRACK)
+    ds_w, _, jac_w = slip_corrected(inc.wheels, inc.brake_level, k, TRACK)
+    np.testing.assert_array_equal(ds, ds_w)
+    assert ds[1] > ds[0]  # the braked wheel rolled further than it counted
+    np.testing.assert_array_equal(dth, [inc.dtheta, inc.dtheta])
+    np.testing.assert_array_equal(jac[:, 0], jac_w[:, 0])
+    assert not jac[:, 1].any()
+    assert all(part.gyro_turn for part in split_increment(inc, 0.05))
+
+
 def _random_increment(rng):
     cov = rng.uniform(1e-7, 1e-5, (2, 2))
     cov = cov @ cov.T
