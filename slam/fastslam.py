@@ -192,7 +192,10 @@ class FastSlamConfig(LocalizerConfig):
     """FastSLAM settings.
 
     initial_pose: (x, y, θ), known exactly (it defines the map frame).
-    n_particles: number of particles (the thesis ran 100).
+    n_particles: number of particles (the thesis ran 100). 300 was chosen from 100 / 200 /
+    300 / 500 on ten simulated dusty trials and MRCLAM dataset 1 (BENCHMARKS.md,
+    "FastSLAM's particle count"): with 100 the particles that survive the first
+    resamplings carry one heading for the map, and the map's frame turns with it.
     version: 1 (sample the motion model, weight by the observation) or 2 (sample from the
     observation-informed proposal).
     noise: odometry noise (slam.motion.MotionNoise).
@@ -242,7 +245,7 @@ class FastSlamConfig(LocalizerConfig):
     EKF-SLAM's). False: they are counted and not used.
     """
 
-    n_particles: int = 100
+    n_particles: int = 300
     version: int = 2
     noise: MotionNoise = field(default_factory=MotionNoise)
     range_sigma_m: float = RANGE_SIGMA_M

@@ -354,9 +354,11 @@ def synthetic():
 
 def matched(version, observation="range-bearing", **kw):
     """The filter told the synthetic world's true noise, which is independent from frame
-    to frame: the textbook weights (weight_gain 1)."""
+    to frame: the textbook weights (weight_gain 1), and the 100 particles it was measured
+    with (the default is 300)."""
     return FastSlamConfig(
         **{
+            "n_particles": 100,
             "initial_pose": (1.5, 0.0, math.pi / 2),
             "version": version,
             "observation": observation,
