@@ -363,7 +363,8 @@ class OdometryModel:
             return inc
         dtheta, var = fused
         cov = np.array([[float(inc.cov[0, 0]), 0.0], [0.0, var]])
-        return replace(inc, dtheta=dtheta, cov=cov, gyro_turn=True)
+        # a gap in the odometry (unknown) is a measured turn now, its distance as wide
+        return replace(inc, dtheta=dtheta, cov=cov, unknown=False, gyro_turn=True)
 
     def diagnostics(self) -> dict:
         """The gyro's bias and scale estimates, windows, fallbacks (empty without it)."""

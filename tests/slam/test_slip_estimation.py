@@ -163,6 +163,15 @@ def test_a_gyro_turn_is_kept_and_the_slipped_distance_corrected():
     np.testing.assert_array_equal(jac[:, 0], jac_w[:, 0])
     assert not jac[:, 1].any()
     assert all(part.gyro_turn for part in split_increment(inc, 0.05))
+    # a gap in velocity odometry stays a measured turn with the gyro (its distance as wide)
+    from hardware.messages import VelocityOdometry
+
+    gap = OdometryModel(CAL, MotionNoise(gyro=GyroFusion(enabled=True)))
+    for msg in (GyroRate(0.0, 0.0), VelocityOdometry(0.0, math.nan, math.nan), GyroRate(0.1, 0.4)):
+        gap.increment(msg)
+    inc = gap.increment(VelocityOdometry(0.1, 0.2, 0.0))
+    assert inc.gyro_turn and not inc.unknown and inc.dtheta == pytest.approx(0.04, rel=0.1)
+    assert inc.cov[0, 0] == MotionNoise().unknown_sigma[0] ** 2  # the gap's distance
 
 
 def _random_increment(rng):
