@@ -25,7 +25,8 @@ interval and corrected by the online bias and scale estimate; var(dθ) is then t
 gyro's and cov(ds, dθ) = 0 (independent sensors).
 An increment from encoder ticks also carries each wheel's counted distance and brake
 level, so that a localizer that estimates each wheel's slip coefficient k can recompute
-it (`slip_corrected`: true distance = encoder distance / (1 − k·level)).
+it (`slip_corrected`: true distance = encoder distance / (1 − k·level)); with the gyro's
+turn (`Increment.gyro_turn`) only its distance (slam.slip.increment_with_slip).
 """
 
 from __future__ import annotations
