@@ -306,23 +306,35 @@ def test_the_localizers_learn_each_wheels_slip_from_landmarks(name, rel):
     assert math.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.06
 
 
+_LANDMARKS = {1: (3.0, 1.0), 2: (3.5, -1.2), 3: (4.0, 0.4)}
+
+
+def _straight_drive(steps: int, sighted, scale: float = 1.0, landmarks=_LANDMARKS) -> list:
+    """A drive along x at 1 m/s: encoder messages every 20 ms counting `scale` of the
+    distance, and exact range-bearing sightings of `landmarks` 10 ms before each encoder
+    message k (1…steps) for which sighted(k)."""
+    m = CAL.metres_per_count
+    msgs = [EncoderTicks(0.0, 0, 0)]
+    for k in range(1, steps + 1):
+        t = 0.02 * k
+        if sighted(k):
+            x = t - 0.01
+            msgs += [
+                RangeBearing(x, i, math.hypot(u - x, v), math.atan2(v, u - x))
+                for i, (u, v) in landmarks.items()
+            ]
+        ticks = math.floor(scale * t / m)
+        msgs.append(EncoderTicks(t, ticks, ticks))
+    return msgs
+
+
 @pytest.mark.parametrize("name", ["ekf-slam", "gtsam", "fastslam"])
 def test_aligned_observations_are_used_at_their_own_time(name):
     """A straight drive at 1 m/s with exact sightings 10 ms after each encoder message:
     used at the last message's pose, each landmark lands 1 cm behind where it is; held
     and used part way through the next increment, where it is (to the encoders'
     2.5 mm counts)."""
-    m = CAL.metres_per_count
-    msgs = [EncoderTicks(0.0, 0, 0)]
-    landmarks = {1: (3.0, 1.0), 2: (3.5, -1.2), 3: (4.0, 0.4)}
-    for k in range(1, 101):
-        t = 0.02 * k
-        x = t - 0.01
-        msgs += [
-            RangeBearing(t - 0.01, i, math.hypot(u - x, v), math.atan2(v, u - x))
-            for i, (u, v) in landmarks.items()
-        ]
-        msgs.append(EncoderTicks(t, math.floor(t / m), math.floor(t / m)))
+    msgs = _straight_drive(100, lambda k: True)
     errors = {}
     for align in (False, True):
         config = LOCALIZERS.spec(name).config_type(align_observations=align, **_EXACT_SENSOR)
@@ -330,7 +342,7 @@ def test_aligned_observations_are_used_at_their_own_time(name):
         for msg in msgs:
             loc.process(msg)
         got = loc.landmarks()
-        errors[align] = [float(got[i][0][0] - u) for i, (u, _) in landmarks.items()]
+        errors[align] = [float(got[i][0][0] - u) for i, (u, _) in _LANDMARKS.items()]
     assert np.allclose(errors[False], -0.01, atol=0.004), errors
     assert np.allclose(errors[True], 0.0, atol=0.004), errors
 
@@ -342,19 +354,7 @@ def test_whole_state_smoothing_keeps_the_step_before_an_aligned_observation(name
     (align_observations): each sighting's epoch leads to the step after it, so the
     whole-state smoothed pose of the step before it is carried there by the odometry,
     not displaced by the sighting's correction (the smoothed path jumped there)."""
-    m = CAL.metres_per_count
-    msgs = [EncoderTicks(0.0, 0, 0)]
-    landmarks = {1: (3.0, 1.0), 2: (3.5, -1.2), 3: (4.0, 0.4)}
-    for k in range(1, 151):
-        t = 0.02 * k
-        if k % 25 == 0:
-            x = t - 0.01
-            msgs += [
-                RangeBearing(t - 0.01, i, math.hypot(u - x, v), math.atan2(v, u - x))
-                for i, (u, v) in landmarks.items()
-            ]
-        ticks = math.floor(0.9 * t / m)
-        msgs.append(EncoderTicks(t, ticks, ticks))
+    msgs = _straight_drive(150, lambda k: k % 25 == 0, scale=0.9)
     config = LOCALIZERS.spec(name).config_type(
         align_observations=True, **{**_EXACT_SENSOR, "noise": MotionNoise(wheel_m=1e-3)}
     )
@@ -373,21 +373,8 @@ def test_an_aligned_observation_leaves_the_step_before_it_as_recorded(name):
     time, not the recorded step before it: that step's filtered pose stays the one it
     was recorded with (fastslam replaced it by the corrected pose of 10 ms later, which
     the whole-state smoother then bridged from as if it were the step's)."""
-    m = CAL.metres_per_count
-    landmarks = {1: (3.0, 1.0), 2: (3.5, -1.2)}
-
-    def sightings(t):
-        x = t  # the truth drives at 1 m/s; the encoders report 10 % short
-        return [
-            RangeBearing(t, i, math.hypot(u - x, v), math.atan2(v, u - x))
-            for i, (u, v) in landmarks.items()
-        ]
-
-    msgs = [EncoderTicks(0.0, 0, 0)]
-    for k in range(1, 26):
-        t = 0.02 * k
-        msgs += sightings(t - 0.01) if k in (1, 25) else []
-        msgs.append(EncoderTicks(t, math.floor(0.9 * t / m), math.floor(0.9 * t / m)))
+    two = {i: _LANDMARKS[i] for i in (1, 2)}  # the encoders report 10 % short
+    msgs = _straight_drive(25, lambda k: k in (1, 25), scale=0.9, landmarks=two)
     sensor = {**_EXACT_SENSOR, "noise": MotionNoise(wheel_m=1e-3)}
     config = LOCALIZERS.spec(name).config_type(align_observations=True, smoother="none", **sensor)
     loc, unseen = create(name, CAL, config), create(name, CAL, config)
