@@ -1,9 +1,12 @@
-"""gtsam with scan matching on every GMapping-corrected laser log, with its spread.
+"""gtsam with scan matching (or --localizer) on every GMapping-corrected laser log, with
+its spread.
 
 Each log in ../shared/data/carmen_corrected_logs is replayed the way `walkerslam replay
 --format carmen LOG --localizer gtsam` replays it (the settings the importer proposes,
 then the --set given here), and its ATE after SE(2) alignment against GMapping's
-corrected poses is printed with the run's real-time factor.
+corrected poses is printed with the run's real-time factor. --localizer grid-rbpf runs
+the per-particle-map filter instead (GMapping's own algorithm, the one that made the
+corrected poses), and --spread then replays seeds 1 and 2 as well.
 
 With --spread the same log is also replayed with the scan matcher's voxel size a tenth
 smaller and larger (`gtsam.scan_match.voxel_m` 0.045 and 0.055 m instead of 0.05): a
@@ -26,7 +29,7 @@ truth, but their errors are centimetres where these are decimetres and degrees.
 target (issue 13): ATE <= 0.15 m on every log.
 
 Usage: .venv/bin/python benchmarks/bench_laser_logs.py [--spread | --odometry]
-           [--logs a,b] [--jobs N] [--set gtsam.FIELD=VALUE ...]
+           [--localizer NAME] [--logs a,b] [--jobs N] [--set NAME.FIELD=VALUE ...]
 """
 
 from __future__ import annotations
@@ -46,24 +49,28 @@ from scipy.optimize import nnls
 REPO = Path(__file__).resolve().parents[1]
 LOGS = REPO.parent / "shared" / "data" / "carmen_corrected_logs"
 VOXELS = (0.045, 0.055)  # around ScanMatchConfig.voxel_m (0.05)
+SEEDS = (1, 2)  # besides the default 0: a particle filter's spread
 TARGET_M = 0.15
 # this checkout's code, also in the worker processes (they inherit the path)
 sys.path.insert(0, str(REPO))
 
 
-def run(log: str, sets: tuple[str, ...], voxel: float | None) -> tuple[str, float | None, float]:
-    """(log, ATE [m], real-time factor) of one replay."""
+def run(
+    log: str, localizer: str, sets: tuple[str, ...], variant: str | None
+) -> tuple[str, float | None, float]:
+    """(log, ATE [m], real-time factor) of one replay; `variant` one more --set (the
+    spread's)."""
     from experiments.config import parse_sets
     from experiments.run import replay_log
     from hardware.datasets import open_dataset
     from slam.base import LOCALIZERS
 
-    texts = list(sets) + ([f"gtsam.scan_match.voxel_m={voxel}"] if voxel is not None else [])
-    overrides = parse_sets(texts, {"gtsam": LOCALIZERS}).get("gtsam", {})
+    texts = list(sets) + ([variant] if variant is not None else [])
+    overrides = parse_sets(texts, {localizer: LOCALIZERS}).get(localizer, {})
     source = open_dataset("carmen", LOGS / f"{log}-corrected.log.gz")
     with tempfile.TemporaryDirectory() as tmp:
         result = replay_log(
-            source, tmp, localizer="gtsam", localizer_overrides=overrides, figures=False,
+            source, tmp, localizer=localizer, localizer_overrides=overrides, figures=False,
             reference_map=False, drag_metrics=False,
         )  # fmt: skip
     m = result.metrics
@@ -108,11 +115,15 @@ def odometry_fit(log: str) -> tuple[str, int, np.ndarray, np.ndarray]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--spread", action="store_true", help="also at voxel sizes 0.045, 0.055 m")
+    ap.add_argument(
+        "--spread", action="store_true",
+        help="gtsam also at voxel sizes 0.045, 0.055 m; another localizer also at seeds 1, 2",
+    )  # fmt: skip
+    ap.add_argument("--localizer", default="gtsam", help="the localizer (default gtsam)")
     ap.add_argument("--odometry", action="store_true", help="fit the odometry's noise instead")
     ap.add_argument("--logs", help="comma-separated log names (default: all)")
     ap.add_argument("--jobs", type=int, default=1, help="replays at a time (default 1)")
-    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="gtsam.F=V")
+    ap.add_argument("--set", dest="sets", action="append", default=[], metavar="LOCALIZER.F=V")
     args = ap.parse_args()
     if not LOGS.is_dir():
         print(f"laser logs: {LOGS} not found, skipped")
@@ -130,8 +141,13 @@ def main() -> int:
                 f"{log:18s} {n:9d}  {kxy[0]:9.5f}  {kxy[1]:11.5f}  {kth[0]:11.5f}  {kth[1]:13.5f}"
             )
         return 0
-    voxels = [None, *VOXELS] if args.spread else [None]
-    jobs = [(n, tuple(args.sets), v) for n in names for v in voxels]
+    loc = args.localizer
+    if loc == "gtsam":
+        spread, spread_text = [f"gtsam.scan_match.voxel_m={v}" for v in VOXELS], "voxels"
+    else:
+        spread, spread_text = [f"{loc}.seed={s}" for s in SEEDS], "seeds"
+    variants = [None, *spread] if args.spread else [None]
+    jobs = [(n, loc, tuple(args.sets), v) for n in names for v in variants]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         results = list(pool.map(run, *zip(*jobs, strict=True)))
@@ -139,8 +155,11 @@ def main() -> int:
     for log, ate, x in results:
         by_log.setdefault(log, []).append((ate, x))
     settings = " ".join(args.sets)
-    print(f"gtsam on {len(names)} corrected laser logs {settings}".rstrip())
-    head = "ATE at default / 0.045 / 0.055 m voxels" if args.spread else "ATE"
+    print(f"{loc} on {len(names)} corrected laser logs {settings}".rstrip())
+    head = "ATE"
+    if args.spread:
+        values = VOXELS if loc == "gtsam" else SEEDS
+        head = f"ATE at default / {' / '.join(map(str, values))} {spread_text}"
     print(f"{'log':18s} {head:>40s}  {'x RT':>6s}")
     met = 0
     for log in names:
