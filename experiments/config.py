@@ -68,14 +68,19 @@ def _field_types(config_type: type) -> dict[str, Any]:
 def field_type(registry: Registry, name: str, path: str) -> Any:
     """The declared type of the field at `path` (dotted, into nested configs) of `name`'s
     config; ConfigError naming the valid fields when there is none."""
-    typ: Any = registry.spec(name).config_type
+    return _path_type(registry.spec(name).config_type, path, name, f"{registry.kind} '{name}'")
+
+
+def _path_type(config_type: type, path: str, name: str, owner: str) -> Any:
+    """field_type's walk through `config_type` (`owner` and `name` for its errors)."""
+    typ: Any = config_type
     parts = path.split(".")
     for depth, part in enumerate(parts):
         fields = _field_types(typ) if dataclasses.is_dataclass(typ) else {}
         if part not in fields:
             where = ".".join(parts[:depth]) or "config"
             raise ConfigError(
-                f"{registry.kind} '{name}' has no field '{part}' in its {where}; fields: "
+                f"{owner} has no field '{part}' in its {where}; fields: "
                 + (", ".join(fields) or "(none)")
             )
         typ = fields[part]
@@ -83,6 +88,23 @@ def field_type(registry: Registry, name: str, path: str) -> Any:
         inner = ", ".join(f"{path}.{f}" for f in _field_types(typ))
         raise ConfigError(f"{name}.{path} is a group of settings; set one of: {inner}")
     return typ
+
+
+def propose(config: Any, proposed: Mapping[str, Any], name: str) -> Any:
+    """`config` (a dataclass, e.g. the mapper's) with the settings a source proposes for
+    it ({field path: value}, typed as the field) applied where it still has its type's
+    default, so that a value the caller chose stands; a ConfigError naming `name` for a
+    path the config lacks or a value that does not fit."""
+    default = type(config)()
+    for path, value in proposed.items():
+        parts = path.split(".")
+        typed = convert(value, _path_type(type(config), path, name, name), f"{name}.{path}")
+        here, there = config, default
+        for part in parts:
+            here, there = getattr(here, part), getattr(there, part)
+        if here == there:
+            config = _replace_path(config, parts, typed)
+    return config
 
 
 def convert(value: Any, typ: Any, where: str) -> Any:

@@ -21,7 +21,7 @@ from control.base import CONTROLLERS
 from experiments import drag
 from experiments import metrics as M
 from experiments.calibration_override import CalibrationOverride, applied
-from experiments.config import Configured, configure
+from experiments.config import Configured, configure, propose
 from experiments.drag import DragConfig
 from experiments.mitigations import Mitigated, check_calibration, check_source, resolve
 from experiments.pipeline import LoopConfig, Pipeline
@@ -33,7 +33,7 @@ from hardware.log import TrialLog, read_log
 from hardware.messages import LANDMARK_MESSAGES, MESSAGE_TYPES, GyroRate, LaserScan
 from hardware.sim.simulator import SimConfig
 from hardware.sim.world import World
-from hardware.source import PROPOSED_SETTINGS
+from hardware.source import PROPOSED_MAPPER_SETTINGS, PROPOSED_SETTINGS
 from mapping.export import save_map_server
 from mapping.mapper import MapperConfig
 from mapping.scan_features import FeatureConfig
@@ -301,6 +301,8 @@ def _build(
         initial_pose=trial.metadata.get("config", {}).get("initial_pose"),
         landmark_map=given if given is not None else true_landmarks,
     )
+    proposed = trial.metadata.get(PROPOSED_MAPPER_SETTINGS) or {}
+    mapper_config = propose(mapper_config or MapperConfig(), proposed, "mapper")
     pipeline = Pipeline(loc, cal, mapper_config, reference_map=reference_map)
     outlines = [p for _, p in world.footprint_polygons(*MAP_BAND_M)] if world is not None else []
     return _Replay(

@@ -29,6 +29,9 @@ from hardware.messages import BrakeCommand, Message
 # value}), e.g. a dataset's fitted noise levels or a simulated trial's encoder noise;
 # replay applies them before the user's --set (experiments.config).
 PROPOSED_SETTINGS = "localizer_settings"
+# ... and the one in which it proposes the occupancy mapper's settings (e.g. a laser's
+# usable range: CARMEN logs read to 80 m), applied where the caller left the default
+PROPOSED_MAPPER_SETTINGS = "mapper_settings"
 
 
 @runtime_checkable

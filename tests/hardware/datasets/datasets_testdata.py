@@ -136,12 +136,14 @@ def write_carmen(
     gz: bool = False,
     backsteps: bool = True,
     seed: int = 0,
+    ranges_m: tuple[float, float] = (1.0, 6.0),
 ) -> Path:
     """A GMapping-corrected CARMEN log like intel.gfs.log: a robot driving arcs with raw
     odometry printed to 6 significant digits (so the increments are not arc-consistent),
     corrected scan poses = raw pose + a growing correction, a reset ODOM line (timestamp
     0) and a NEFF line after each FLASER, and (backsteps) ODOM timestamps that step back
-    inside segments. Scan k's last ODOM line has the scan's timestamp."""
+    inside segments. Scan k's last ODOM line has the scan's timestamp. Readings are
+    uniform in `ranges_m`."""
     rng = np.random.default_rng(seed)
     lines = ["# synthetic CARMEN log", "PARAM robot_frontlaser_offset 0.0 nohost 0"]
     raw = (0.0, 0.0, 0.0)
@@ -176,7 +178,8 @@ def write_carmen(
         correction = _compose(correction, (0.01 * rng.standard_normal(), 0.01, 0.005))
         corr = _compose(correction, raw)
         pose = " ".join(_fmt(v) for v in corr)
-        ranges = " ".join(_fmt(v) for v in 1.0 + 5.0 * rng.random(beams))
+        lo, hi = ranges_m
+        ranges = " ".join(_fmt(v) for v in lo + (hi - lo) * rng.random(beams))
         ts = _fmt(times[-1])
         lines.append(f"FLASER {beams} {ranges} {pose} {pose} {ts} pippo {ts}")
         lines.append(f"ODOM {pose} 0 0 0 0 pippo 0")

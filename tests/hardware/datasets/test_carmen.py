@@ -383,3 +383,35 @@ def test_intel_full_import(tmp_path, intel):
     assert trial.metadata["relations"]["rows"][0] == intel.metadata["relations"]["rows"][0]
     assert trial.metadata["groundtruth"]["kind"] == "slam-corrected"
     assert_same_messages(list(trial.messages()), list(intel.messages()))
+
+
+def test_hits_beyond_the_mapped_range_are_not_mapped(tmp_path):
+    """A CARMEN log proposes its usable range (20 m) to the occupancy mapper as well as
+    to the localizers: a replay maps no hit farther than that from the scan (readings
+    here reach 60 m), through the dataset and through its MCAP import alike, and a
+    mapper range the caller chose stands."""
+    from experiments.run import replay_log
+    from hardware.datasets.carmen import USABLE_RANGE_M
+    from mapping.mapper import MapperConfig
+    from mapping.scan_points import ScanConfig
+
+    path = write_carmen(tmp_path / "far.log", scans=4, ranges_m=(2.0, 60.0))
+    mcap = tmp_path / "far.mcap"
+    import_to_log(open_dataset("carmen", path), mcap)
+    for name, source in (("dataset", open_dataset("carmen", path)), ("mcap", read_log(mcap))):
+        res = replay_log(
+            source, tmp_path / name, localizer="dead-reckoning", figures=False,
+            reference_map=False, drag_metrics=False,
+        )  # fmt: skip
+        mapper = res.pipeline.mapper
+        assert mapper.config.scan.max_range_m == USABLE_RANGE_M
+        hits = mapper.grid.occupied_xy()
+        scans = res.pipeline.localizer.trajectory().poses  # the robot stays within ~1 m
+        far = np.min(np.hypot(*(hits[:, None, :2] - scans[None, :, :2]).transpose(2, 0, 1)), axis=1)
+        assert len(hits) > 100 and far.max() < USABLE_RANGE_M + 0.2, far.max()
+    chosen = MapperConfig(scan=ScanConfig(max_range_m=40.0))
+    res = replay_log(
+        open_dataset("carmen", path), tmp_path / "chosen", localizer="dead-reckoning",
+        mapper_config=chosen, figures=False, reference_map=False, drag_metrics=False,
+    )  # fmt: skip
+    assert res.pipeline.mapper.config.scan.max_range_m == 40.0
