@@ -152,6 +152,11 @@ class GridExtent(ABC):
         return next(iter(self._layers.values())).shape
 
     @property
+    def nbytes(self) -> int:
+        """Bytes held by the layers."""
+        return sum(layer.nbytes for layer in self._layers.values())
+
+    @property
     def lattice_offset(self) -> tuple[int, int]:
         """World-lattice cell (i, j) of array cell [0, 0]; origin = offset · resolution."""
         return int(self._offset[0]), int(self._offset[1])

@@ -226,7 +226,7 @@ def test_resampled_particles_share_a_map_until_they_write_it():
     original = maps[0].copy()
     scan = next(m for m in msgs[200:] if type(m).__name__ == "LaserScan")
     obs = scan_to_observation(scan).compacted(0.0125)
-    rbpf._integrate(obs)
+    rbpf._integrate(obs, 0.0)
     after = rbpf.particle_maps()
     assert len({id(m) for m in after}) == len(after)  # each wrote into its own copy
     assert sum(m is maps[0] for m in after) == 1  # the last user keeps the original
@@ -267,3 +267,35 @@ def test_intel_lab_subset_relations_beat_dead_reckoning():
     assert e["relations_trans_mean_m"] < 0.06
     assert e["relations_trans_mean_m"] < 0.05 * e_dr["relations_trans_mean_m"]
     assert e["relations_rot_mean_deg"] < 0.1 * e_dr["relations_rot_mean_deg"]
+
+
+def test_maps_past_their_memory_budget_stop_the_run_with_a_clear_error(tmp_path):
+    """The particles' maps are counted once per shared map; past `map_memory_gb` the run
+    stops with a ConfigError naming the remedies (a laser log's 60 maps had taken 24 GB
+    and the kernel killed the process), and from the CLI it is one line, exit 2."""
+    import subprocess
+    import sys
+
+    from hardware.errors import ConfigError
+    from hardware.log import LogWriter
+
+    msgs, truth = loop_messages(laps=1)
+    start = tuple(truth.poses[0])
+    loc, _ = _run(msgs, RBPF, start)
+    held = sum(m.nbytes for m in {id(m): m for m in loc.particle_maps()}.values())
+    assert held > 10 * 4 * 100 * 100  # ten maps of four float32 layers, a 5 x 5 m room or more
+    with pytest.raises(ConfigError, match=r"grid-rbpf: its \d+ particle maps .*map_memory_gb=G"):
+        _run(msgs, replace(RBPF, map_memory_gb=0.5 * held / 1e9), start)
+
+    log = tmp_path / "room.mcap"
+    with LogWriter(log, WalkerCalibration()) as w:
+        for m in msgs:
+            w.write(m)
+    res = subprocess.run(
+        [sys.executable, "-m", "experiments", "replay", str(log), "--localizer", "grid-rbpf",
+         "--set", "grid-rbpf.map_memory_gb=0.0001", "--out", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=600, check=False,
+    )  # fmt: skip
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip() and "note:" not in ln]
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert len(lines) == 1 and "map_memory_gb" in lines[0], res.stderr
