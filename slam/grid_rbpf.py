@@ -12,7 +12,10 @@ of odometry), for each particle:
 1. its odometry prediction since the last frame (deterministic; the odometry's
    covariance accumulates meanwhile, as in the "scan" proposal of slam.particle_filter)
    starts a hill-climbing scan match against the particle's own map
-   (slam.grid_kernels: GMapping's endpoint model and optimizer);
+   (slam.grid_kernels: GMapping's endpoint model and optimizer); after an odometry gap
+   (motion unknown) every start is first moved as a full-turn correlative match of the
+   frame against the most probable particle's map moves that particle
+   (`GridMatch.gap_window`);
 2. when at least `min_points` of the frame's points found an occupied cell there, the
    improved proposal: likelihood × odometry prior on a 3×3×3 lattice around the match
    (`match.fit_step_m`, `match.fit_step_rad`), a Gaussian fitted to it
@@ -57,8 +60,11 @@ from mapping.grid import GridExtent, HitCentroidGrid, make_grid
 from mapping.mapper import MapperConfig, OccupancyMapper, Projection
 from slam.base import PoseEstimate
 from slam.grid_kernels import draw, propose
+from slam.motion import Increment
 from slam.particle_filter import ParticleFilter, ParticleFilterConfig, ParticleSettings
 from slam.particle_paths import ParticlePaths, path_end
+from slam.scan_matching import Reference
+from slam.scan_matching import match as scan_match
 from slam.scan_proposal import ProposalLattice
 from slam.trajectory import Trajectory
 
@@ -80,7 +86,14 @@ class GridMatch:
     others only the one it chose (none when its own start won): the odometry's heading
     error is the same for every particle, and two extra climbs per particle were most
     of the filter's time on Intel; False: every particle tries both;
-    fit_step_m / fit_step_rad: the lattice the proposal's Gaussian is fitted on."""
+    fit_step_m / fit_step_rad: the lattice the proposal's Gaussian is fitted on.
+    gap_window (m, rad): after an odometry gap (motion unknown, e.g. Seattle's laser log
+    turns 81° in its one gap) the climbs cannot reach the pose from the odometry's: the
+    frame is first matched against the most probable particle's map by the correlative
+    search and ICP (slam.scan_matching.match, as gtsam searches a gap) within ± this of
+    its pose, and every particle climbs from its own pose moved as that match moved it;
+    an ICP fit with fewer than gap_min_inliers of the points within 5 cm of the map, or
+    not converged, leaves the starts as they were (above 1: the search is never used)."""
 
     kernel_cells: int = 1
     sigma_m: float = 0.03
@@ -92,6 +105,8 @@ class GridMatch:
     shared_turn_starts: bool = True
     fit_step_m: float = 0.02
     fit_step_rad: float = 0.01
+    gap_window: tuple[float, float] = (1.0, math.pi)
+    gap_min_inliers: float = 0.5
 
     def __post_init__(self) -> None:
         if self.kernel_cells < 0 or self.refinements < 0:
@@ -102,6 +117,8 @@ class GridMatch:
             raise ValueError("sigma_m and beam_weight must be > 0")
         if min(self.step_m, self.step_rad, self.fit_step_m, self.fit_step_rad) <= 0:
             raise ValueError("the match's steps must be > 0")
+        if len(self.gap_window) != 2 or min(self.gap_window) < 0 or self.gap_min_inliers < 0:
+            raise ValueError("gap_window must be two values >= 0 and gap_min_inliers >= 0")
 
 
 @dataclass(frozen=True)
@@ -184,7 +201,11 @@ class GridRbpf(ParticleFilter):
         self._segment_totals: list[tuple[float, float]] = []  # at each correction
         self._correction_t = -math.inf
         self._path_cache: tuple[tuple[int, float], Trajectory] | None = None
-        self.counts.update(scan_matches=0, unmatched=0, map_copies=0, turn_starts=0, turn_wins=0)
+        self.counts.update(
+            scan_matches=0, unmatched=0, map_copies=0, turn_starts=0, turn_wins=0,
+            gap_searches=0, gap_matches=0,
+        )  # fmt: skip
+        self._gap = False  # an odometry gap since the last scored frame
         threads = config.threads or len(os.sched_getaffinity(0))
         self._pool = ThreadPoolExecutor(threads) if threads > 1 else None
         self._threads = threads
@@ -247,8 +268,8 @@ class GridRbpf(ParticleFilter):
         x0, x1, y0, y1 = max(maps, key=lambda m: m.nbytes).extent
         raise ConfigError(
             f"grid-rbpf: its {len(maps)} particle maps (up to {x1 - x0:.0f} x {y1 - y0:.0f} m) "
-            f"grew to {held / 1e9:.3g} GB at t = {t:.1f} s, past its budget "
-            f"of {budget / 1e9:.3g} GB; use fewer particles (--set grid-rbpf.n_particles=N), "
+            f"outgrew their memory budget of {budget / 1e9:.3g} GB at t = {t:.1f} s; "
+            "use fewer particles (--set grid-rbpf.n_particles=N), "
             "a coarser grid (--resolution) or a larger budget (--set grid-rbpf.map_memory_gb=G)"
         )
 
@@ -276,6 +297,15 @@ class GridRbpf(ParticleFilter):
         log_eta = np.zeros(len(self.particles))
         matched = np.full(len(self.particles), -1)  # 1 matched, 0 not, -1 not scored
         turns = self._turns(prior[0])
+        # the most probable particle first: with shared turned starts, the start it
+        # chose is the only one the others try besides their own
+        order = np.argsort(-self._weights, kind="stable")
+        starts = self.particles
+        if self._gap and (shift := self._gap_shift(points, order[0])) is not None:
+            starts = self.particles + shift
+            starts[:, 2] = wrap_angle(starts[:, 2])
+            turns = turns[:0]
+        self._gap = False
 
         def match(order: np.ndarray, turns: np.ndarray) -> np.ndarray:
             """Propose each particle of `order`; returns the winning starts."""
@@ -283,17 +313,14 @@ class GridRbpf(ParticleFilter):
             for k, i in enumerate(order):
                 args = self._score_args(self._maps[i])
                 if args is None or len(points) < c.min_points:
-                    new[i] = draw(self.particles[i], prior[i], e[i])
+                    new[i] = draw(starts[i], prior[i], e[i])
                     continue
                 new[i], log_eta[i], matched[i], won[k] = propose(
-                    *args, points, self.particles[i], prior[i], turns, params, fit_steps,
+                    *args, points, starts[i], prior[i], turns, params, fit_steps,
                     c.min_points, e[i],
                 )  # fmt: skip
             return won
 
-        # the most probable particle first: with shared turned starts, the start it
-        # chose is the only one the others try besides their own
-        order = np.argsort(-self._weights, kind="stable")
         if len(turns) > 1 and c.match.shared_turn_starts:
             (won,) = match(order[:1], turns)
             if matched[order[0]] >= 0:
@@ -313,6 +340,32 @@ class GridRbpf(ParticleFilter):
         self._moved = (0.0, 0.0)
         self.revision += 1
         self._snapshot(msg.t)
+
+    def _predict(self, inc: Increment) -> None:
+        self._gap = self._gap or inc.unknown
+        super()._predict(inc)
+
+    def _gap_shift(self, points: np.ndarray, best: int) -> np.ndarray | None:
+        """After an odometry gap: how the correlative match of the frame's `points`
+        against particle `best`'s map (its occupied cells within reach) moves that
+        particle's pose (world dx, dy, dθ), or None when it finds no good fit
+        (`GridMatch.gap_window`)."""
+        m = self.config.match
+        grid, guess = self._maps[best], self.particles[best]
+        if grid.shape[0] == 0 or len(points) < self.config.min_points:
+            return None
+        mapped = grid.occupied_xy()
+        reach = self.config.max_range_m + m.gap_window[0]
+        d = mapped - guess[:2]
+        ref = Reference(mapped[np.einsum("ij,ij->i", d, d) <= reach * reach])
+        self.counts["gap_searches"] += 1
+        res = scan_match(ref, points, guess, *m.gap_window)
+        if not res.converged or res.inlier_fraction < m.gap_min_inliers:
+            return None
+        self.counts["gap_matches"] += 1
+        shift = res.pose - guess
+        shift[2] = wrap_angle(shift[2])
+        return shift
 
     def _draw_odometry_noise(self, t: float) -> None:
         """A landmark sighting's or a position fix's draw of the odometry noise moves the
