@@ -63,16 +63,21 @@ def run(
     from experiments.config import parse_sets
     from experiments.run import replay_log
     from hardware.datasets import open_dataset
+    from hardware.errors import WalkerSlamError
     from slam.base import LOCALIZERS
 
     texts = list(sets) + ([variant] if variant is not None else [])
     overrides = parse_sets(texts, {localizer: LOCALIZERS}).get(localizer, {})
     source = open_dataset("carmen", LOGS / f"{log}-corrected.log.gz")
     with tempfile.TemporaryDirectory() as tmp:
-        result = replay_log(
-            source, tmp, localizer=localizer, localizer_overrides=overrides, figures=False,
-            reference_map=False, drag_metrics=False,
-        )  # fmt: skip
+        try:
+            result = replay_log(
+                source, tmp, localizer=localizer, localizer_overrides=overrides,
+                figures=False, reference_map=False, drag_metrics=False,
+            )  # fmt: skip
+        except WalkerSlamError as e:  # e.g. grid-rbpf's maps past their memory budget
+            print(f"{log}: {e}", flush=True)
+            return log, None, math.nan
     m = result.metrics
     return log, m.get("ate_rmse_m"), m["realtime_factor"]
 
