@@ -45,6 +45,8 @@ def _print_metrics(metrics: dict, files: dict[str, Path]) -> None:
         "relations_trans_mean_m",
         "gps_rmse_m",
         "gps_rmse_unaligned_m",
+        "wall_spread_m",
+        "reference_wall_spread_m",
         "map_precision",
         "phantom_area_m2",
         "braking_impulse_nms",
@@ -645,6 +647,7 @@ def _summary_table(summary: list[dict]) -> Table:
         "gps_rmse_m": "GPS m",
         "gps_rmse_unaligned_m": "GPS unal. m",
         "landmark_rmse_m": "landm. m",
+        "wall_spread_m": "walls m",
         "phantom_area_m2": "phantom m²",
         "realtime_factor": "× RT",
     }

@@ -44,6 +44,7 @@ COLUMNS = (
     "gps_rmse_m",
     "gps_rmse_unaligned_m",
     "landmark_rmse_m",
+    "wall_spread_m",
     "phantom_area_m2",
     "runtime_s",
     "realtime_factor",

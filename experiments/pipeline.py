@@ -55,6 +55,11 @@ class Recorded:
     out_of_order: dict[str, int] = field(default_factory=dict)
     t_first: float = math.nan
     t_last: float = math.nan
+    # laser scans' hits (K×2, walker frame) with their times and the true pose at each
+    # (NaN where none is near): the map's sharpness at any trajectory (experiments.sharpness)
+    scan_t: list[float] = field(default_factory=list)
+    scan_hits: list[np.ndarray] = field(default_factory=list)
+    scan_truth: list[np.ndarray] = field(default_factory=list)
 
     def groundtruth_trajectory(self) -> Trajectory | None:
         if not self.groundtruth_t:
@@ -143,10 +148,16 @@ class Pipeline:
         if self._hygienic(msg.t, estimate):
             key = msg.t if self._keep_frames else None
             self.mapper.integrate_projection(projection, estimate.pose, key)
-        truth = self._latest_truth
-        if self.reference is not None and truth and abs(truth.t - msg.t) <= GROUNDTRUTH_TOLERANCE_S:
-            pose = np.array([truth.x, truth.y, truth.theta])
-            self.reference.integrate_projection(projection, pose)
+        truth, true_pose = self._latest_truth, None
+        if truth is not None and abs(truth.t - msg.t) <= GROUNDTRUTH_TOLERANCE_S:
+            true_pose = np.array([truth.x, truth.y, truth.theta])
+        if isinstance(msg, LaserScan):
+            rec = self.recorded
+            rec.scan_t.append(msg.t)
+            rec.scan_hits.append(np.array(projection.raw.obstacles))  # not a view of all points
+            rec.scan_truth.append(np.full(3, math.nan) if true_pose is None else true_pose)
+        if self.reference is not None and true_pose is not None:
+            self.reference.integrate_projection(projection, true_pose)
 
     def _hygienic(self, t: float, estimate) -> bool:
         """Map hygiene before a frame is mapped (`mapping.hygiene`): reset the map when
