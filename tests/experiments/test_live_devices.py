@@ -94,12 +94,17 @@ def test_live_on_a_pty_board_fakenect_depth_and_a_tag_camera(tmp_path):
     msgs = list(read_log(log).messages())
     frames = [m for m in msgs if isinstance(m, DepthFrame)]
     tags = [m for m in msgs if isinstance(m, TagDetections)]
-    assert frames and tags and res.dropped["depth"] == res.dropped["tags"] == 0
+    # a loop that falls behind drops the oldest frames and images, counted (a loaded
+    # machine drops one now and then): none is lost uncounted
+    assert frames and tags
+    received = {name: res.sources[name].by_type for name in ("depth", "tags")}
+    assert len(frames) + res.dropped["depth"] == received["depth"]["DepthFrame"]
+    assert len(tags) + res.dropped["tags"] == received["tags"]["TagDetections"]
     # every frame recorded value for value: the recording's raw through the 11-bit table,
     # limited to the calibration's range, decimated to its 160×120 as the driver says
     table = kinect_raw_to_mm_table(CAL.depth_range_m)
     wanted = [decimate_nearest(table[raw], 4) for raw in raws]
-    assert len(frames) == res.sources["depth"].by_type["DepthFrame"] > FRAMES // 2
+    assert len(frames) > FRAMES // 2
     index = []
     for got in frames:
         same = [i for i, want in enumerate(wanted) if np.array_equal(got.depth_mm, want)]
@@ -109,9 +114,13 @@ def test_live_on_a_pty_board_fakenect_depth_and_a_tag_camera(tmp_path):
     # in order; libfreenect's replay may skip a frame of its buffer ring (counted)
     assert index == sorted(index) and len(set(index)) == len(index)
     assert all(b.t > a.t for a, b in itertools.pairwise(frames))
-    # the tag camera's detections: the ids of the images, in order
+    # the tag camera's detections: the ids of the images, in order (gaps where dropped)
     seen = [[d.tag_id for d in m.detections] for m in tags]
-    assert seen == [[7 + i] for i in range(len(tags))]
+    assert all(len(ids) == 1 for ids in seen)
+    ids = [ids[0] for ids in seen]
+    if res.dropped["tags"] == 0:
+        assert ids == list(range(7, 7 + len(tags)))
+    assert ids[0] >= 7 and all(b > a for a, b in itertools.pairwise(ids))
     # the encoder ticks all there, and the replay is the live run
     assert sum(isinstance(m, EncoderTicks) for m in msgs) == res.board["ticks"]
     rep = replay_log(log, tmp_path / "replay", localizer="dead-reckoning", figures=False)
