@@ -5,7 +5,8 @@ Each log in ../shared/data/carmen_corrected_logs is replayed the way `walkerslam
 --format carmen LOG --localizer gtsam` replays it (the settings the importer proposes,
 then the --set given here), and its ATE after SE(2) alignment against GMapping's
 corrected poses is printed with the run's real-time factor and the map's sharpness: the
-median spread across walls of every scan's hits at the run's poses and at GMapping's
+median spread across walls (within 25 and 50 cm of each hit) of every scan's hits at the
+run's poses and at GMapping's
 (experiments.sharpness; GMapping's poses are not truth, and where the two disagree the
 thinner walls placed the scans more consistently). --localizer grid-rbpf runs
 the per-particle-map filter instead (GMapping's own algorithm, the one that made the
@@ -60,9 +61,10 @@ sys.path.insert(0, str(REPO))
 
 def run(
     log: str, localizer: str, sets: tuple[str, ...], variant: str | None
-) -> tuple[str, float | None, float, tuple[float, float]]:
-    """(log, ATE [m], real-time factor, the wall spread [m] of its map and of the map at
-    GMapping's poses) of one replay; `variant` one more --set (the spread's)."""
+) -> tuple[str, float | None, float, tuple[float, ...]]:
+    """(log, ATE [m], real-time factor, the wall spread [m] of its map within 25 and 50
+    cm, then of the map at GMapping's poses) of one replay; `variant` one more --set (the
+    spread's)."""
     from experiments.config import parse_sets
     from experiments.run import replay_log
     from hardware.datasets import open_dataset
@@ -80,9 +82,13 @@ def run(
             )  # fmt: skip
         except WalkerSlamError as e:  # e.g. grid-rbpf's maps past their memory budget
             print(f"{log}: {e}", flush=True)
-            return log, None, math.nan, (math.nan, math.nan)
+            return log, None, math.nan, (math.nan,) * 4
     m = result.metrics
-    walls = (m.get("wall_spread_m", math.nan), m.get("reference_wall_spread_m", math.nan))
+    walls = tuple(
+        m.get(f"{who}wall_spread{scale}_m", math.nan)
+        for who in ("", "reference_")
+        for scale in ("", "_coarse")
+    )
     return log, m.get("ate_rmse_m"), m["realtime_factor"], walls
 
 
@@ -160,7 +166,7 @@ def main() -> int:
     t0 = time.perf_counter()
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         results = list(pool.map(run, *zip(*jobs, strict=True)))
-    by_log: dict[str, list[tuple[float | None, float, tuple[float, float]]]] = {}
+    by_log: dict[str, list[tuple[float | None, float, tuple[float, ...]]]] = {}
     for log, ate, x, walls in results:
         by_log.setdefault(log, []).append((ate, x, walls))
     settings = " ".join(args.sets)
@@ -169,15 +175,16 @@ def main() -> int:
     if args.spread:
         values = VOXELS if loc == "gtsam" else SEEDS
         head = f"ATE at default / {' / '.join(map(str, values))} {spread_text}"
-    print(f"{'log':18s} {head:>40s}  {'x RT':>6s}  walls [cm]: {loc} / GMapping's")
+    walls_head = f"walls within 25 / 50 cm [cm]: {loc}; GMapping's"
+    print(f"{'log':18s} {head:>40s}  {'x RT':>6s}  {walls_head}")
     met = 0
     for log in names:
         ates = [a for a, _, _ in by_log[log]]
         text = " / ".join("-" if a is None else f"{a:.3f}" for a in ates)
         ok = ates[0] is not None and ates[0] <= TARGET_M
         met += ok
-        _, x, (ours, theirs) = by_log[log][0]
-        walls = f"{100 * ours:5.2f} / {100 * theirs:5.2f}"
+        _, x, w = by_log[log][0]
+        walls = f"{100 * w[0]:5.2f} / {100 * w[1]:5.2f}; {100 * w[2]:5.2f} / {100 * w[3]:5.2f}"
         print(f"{log:18s} {text:>40s}  {x:6.1f}  {walls}{'' if ok else f'  (ATE > {TARGET_M})'}")
     firsts = [by_log[n][0][0] for n in names if by_log[n][0][0] is not None]
     print(

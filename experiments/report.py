@@ -27,6 +27,7 @@ from matplotlib.patches import Patch
 
 from experiments.metrics import GpsFit, associate
 from experiments.pipeline import Pipeline
+from experiments.sharpness import SCALES, ScanClouds, local_spread, scan_clouds
 from hardware.messages import BrakeCommand, Collision
 from mapping.export import MapRaster, map_raster
 from mapping.grid import GridExtent
@@ -272,6 +273,50 @@ def maps_figure(
     return fig
 
 
+def sharpness_figure(clouds: ScanClouds, *, localizer: str, log: str | Path) -> Figure:
+    """sharpness.png: a laser replay's scan hits at the localizer's poses (and at the
+    reference's, side by side), each coloured by the spread across the wall around it
+    within 50 cm (experiments.sharpness): walls seen twice a few decimetres apart show
+    up warm, where a loop was not closed or a scan was misplaced."""
+    cfg = SCALES[1]
+    panels = [(f"{localizer} poses", clouds.estimated)]
+    if clouds.reference is not None:
+        panels.append(("reference poses", clouds.reference))
+    spreads = [local_spread(cloud, cfg) for _, cloud in panels]
+    xy = np.concatenate([sp.xy for sp in spreads] + [np.zeros((0, 2))])
+    box = (
+        tuple(np.r_[xy.min(axis=0) - 1.0, xy.max(axis=0) + 1.0][[0, 2, 1, 3]])
+        if len(xy)
+        else (0.0, 1.0, 0.0, 1.0)
+    )
+    w, h = _figsize(box, 5.6, legend_width=0.0)
+    fig = Figure(figsize=(len(panels) * w + 1.2, h + 0.2), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, len(panels), sharex=True, sharey=True))
+    vmax = 0.15
+    art = None
+    for ax, (name, _), sp in zip(axes, panels, spreads, strict=True):
+        order = np.argsort(sp.spread_m)  # the widest on top
+        art = ax.scatter(
+            *sp.xy[order].T, c=sp.spread_m[order], s=0.4, cmap="viridis", vmin=0.0,
+            vmax=vmax, rasterized=True, linewidths=0,
+        )  # fmt: skip
+        median = float(np.median(sp.spread_m)) if len(sp.spread_m) else float("nan")
+        ax.set_title(f"hits at the {name}: median spread {100 * median:.1f} cm", fontsize=9)
+        ax.set_facecolor("#f4f4f4")
+        metric_axes(ax)
+    axes[0].set_xlim(box[0], box[1])
+    axes[0].set_ylim(box[2], box[3])
+    if art is not None:
+        bar = fig.colorbar(art, ax=list(axes), shrink=0.8, extend="max")
+        bar.set_label(f"spread across the wall within {cfg.radius_m:g} m [m]", fontsize=8)
+    fig.suptitle(
+        f"{log_name(log)}: the same scans at two sets of poses (thinner walls: more"
+        " consistent poses)",
+        fontsize=10,
+    )
+    return fig
+
+
 def trajectory_figure(
     est: Trajectory,
     gt: Trajectory | None,
@@ -442,7 +487,7 @@ def write_figures(
     log: str | Path,
 ) -> dict[str, Path]:
     """trajectory.png; with ground truth errors.png, and with the reference map too
-    maps_side_by_side.png."""
+    maps_side_by_side.png; for laser scans sharpness.png."""
     named = {"localizer": localizer, "log": log}
     rec = pipeline.recorded
     files = {
@@ -464,6 +509,9 @@ def write_figures(
             **named,
         )
         files["maps_png"] = save(fig, out / "maps_side_by_side.png")
+    if rec.scan_t and len(est) > 1:
+        clouds = scan_clouds(rec.scan_t, rec.scan_hits, est, np.array(rec.scan_truth))
+        files["sharpness_png"] = save(sharpness_figure(clouds, **named), out / "sharpness.png")
     return files
 
 

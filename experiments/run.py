@@ -25,7 +25,7 @@ from experiments.config import Configured, configure, propose
 from experiments.drag import DragConfig
 from experiments.mitigations import Mitigated, check_calibration, check_source, resolve
 from experiments.pipeline import LoopConfig, Pipeline
-from experiments.sharpness import scan_map_sharpness
+from experiments.sharpness import scan_clouds, scan_map_sharpness
 from experiments.simulation import VERSION, RunSpec, simulate
 from hardware.calibration import WalkerCalibration
 from hardware.datasets import Dataset
@@ -401,11 +401,13 @@ def _evaluate(r: _Replay):
     if "gps" in r.trial.metadata and len(est) > 1:
         metrics.update(M.gps_errors(est, np.array(r.trial.metadata["gps"]["rows"])))
     if rec.scan_t and len(est) > 1:
-        sharp = scan_map_sharpness(rec.scan_t, rec.scan_hits, est, np.array(rec.scan_truth))
-        metrics["map_sharpness"] = sharp
-        metrics["wall_spread_m"] = sharp["estimated"]["wall_spread_median_m"]
-        if "reference" in sharp:
-            metrics["reference_wall_spread_m"] = sharp["reference"]["wall_spread_median_m"]
+        clouds = scan_clouds(rec.scan_t, rec.scan_hits, est, np.array(rec.scan_truth))
+        metrics["map_sharpness"] = sharp = scan_map_sharpness(clouds)
+        for who, prefix in (("estimated", ""), ("reference", "reference_")):
+            if who in sharp:
+                fine, coarse = (s["wall_spread_median_m"] for s in sharp[who])
+                metrics[f"{prefix}wall_spread_m"] = fine
+                metrics[f"{prefix}wall_spread_coarse_m"] = coarse
     if r.world is not None:
         area = pipeline.mapper.grid.resolution**2
         metrics.update(M.map_scores(pipeline.mapper.occupied_xy(), area, r.outlines))

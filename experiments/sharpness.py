@@ -62,42 +62,54 @@ def place_hits(hits: Sequence[np.ndarray], poses: np.ndarray) -> np.ndarray:
     return np.concatenate(placed) if placed else np.zeros((0, 2))
 
 
-def sharpness(cloud: np.ndarray, config: SharpnessConfig | None = None) -> dict[str, float]:
-    """Wall spread and map entropy of a world cloud (N×2; module doc). NaN when no
-    point has min_neighbours within the radius."""
+@dataclass(frozen=True, eq=False)
+class LocalSpread:
+    """Per evaluated point of a cloud: where it is (M×2), the spread across the wall
+    around it (√λ, M) and the log-determinant of its neighbourhood's covariance (M);
+    `points`, how many finite points the cloud had."""
+
+    xy: np.ndarray
+    spread_m: np.ndarray
+    logdet: np.ndarray
+    points: int
+
+
+def local_spread(cloud: np.ndarray, config: SharpnessConfig | None = None) -> LocalSpread:
+    """The spread around each evaluated point of a world cloud (N×2; module doc): at
+    most config.max_points of them, an even stride through the cloud, those with
+    min_neighbours within the radius."""
     cfg = config or SharpnessConfig()
     cloud = np.asarray(cloud, dtype=float).reshape(-1, 2)
     finite = cloud[np.all(np.isfinite(cloud), axis=1)]
-    empty = {
-        "wall_spread_median_m": math.nan,
-        "wall_spread_rms_m": math.nan,
-        "map_entropy": math.nan,
-        "points": len(finite),
-        "evaluated": 0,
-    }
     if len(finite) == 0:
-        return empty
+        return LocalSpread(np.zeros((0, 2)), np.zeros(0), np.zeros(0), 0)
     cells = np.floor(finite / cfg.radius_m).astype(np.int64)
     lo = cells.min(axis=0) - 1
     span_y = int(cells[:, 1].max() - lo[1]) + 2
     keys = (cells[:, 0] - lo[0]) * span_y + (cells[:, 1] - lo[1])
     order = np.argsort(keys, kind="stable")
-    sorted_pts, sorted_keys = finite[order], keys[order]
     stride = max(1, math.ceil(len(finite) / cfg.max_points))
     queries = finite[::stride]
-    q_keys = keys[::stride]
     lam, logdet, ok = _spreads(
-        sorted_pts, sorted_keys, queries, q_keys, span_y, cfg.radius_m, cfg.min_neighbours
-    )
-    if not ok.any():
-        return empty
-    lam, logdet = lam[ok], logdet[ok]
+        finite[order], keys[order], queries, keys[::stride], span_y, cfg.radius_m,
+        cfg.min_neighbours,
+    )  # fmt: skip
+    return LocalSpread(queries[ok], np.sqrt(lam[ok]), logdet[ok], len(finite))
+
+
+def sharpness(cloud: np.ndarray, config: SharpnessConfig | None = None) -> dict[str, float]:
+    """Wall spread and map entropy of a world cloud (N×2; module doc). NaN when no
+    point has min_neighbours within the radius."""
+    local = local_spread(cloud, config)
+    spread, n = local.spread_m, len(local.spread_m)
     return {
-        "wall_spread_median_m": float(np.median(np.sqrt(lam))),
-        "wall_spread_rms_m": float(math.sqrt(lam.mean())),
-        "map_entropy": float(np.mean(math.log(2.0 * math.pi * math.e) + 0.5 * logdet)),
-        "points": len(finite),
-        "evaluated": int(ok.sum()),
+        "wall_spread_median_m": float(np.median(spread)) if n else math.nan,
+        "wall_spread_rms_m": float(math.sqrt(np.mean(spread**2))) if n else math.nan,
+        "map_entropy": (
+            float(np.mean(math.log(2.0 * math.pi * math.e) + 0.5 * local.logdet)) if n else math.nan
+        ),
+        "points": local.points,
+        "evaluated": n,
     }
 
 
@@ -108,31 +120,53 @@ def trajectory_sharpness(
     return sharpness(place_hits(hits, poses), config)
 
 
-def scan_map_sharpness(
-    t: np.ndarray,
-    hits: Sequence[np.ndarray],
-    estimate: Trajectory,
-    truth: np.ndarray | None = None,
-    config: SharpnessConfig | None = None,
-) -> dict[str, Any]:
-    """A replay's map sharpness: the scans (times t, hits) at the estimate's poses and,
-    where `truth` (S×3, NaN rows where none) has poses, the same scans at those too —
-    then both over just those scans, so the two numbers compare."""
+# the scales a replay reports: 25 cm (pose noise; walls doubled up to ~25 cm apart) and
+# 50 cm (decimetre offsets, e.g. a revisit's walls where a loop was not closed)
+SCALES = (SharpnessConfig(), SharpnessConfig(radius_m=0.5))
+
+
+@dataclass(frozen=True, eq=False)
+class ScanClouds:
+    """A replay's scan hits placed at the estimate's poses and, when there is one, at
+    the reference's, over the same scans (those with a reference pose)."""
+
+    estimated: np.ndarray
+    reference: np.ndarray | None
+    scans: int
+
+
+def scan_clouds(
+    t: np.ndarray, hits: Sequence[np.ndarray], estimate: Trajectory, truth: np.ndarray | None
+) -> ScanClouds:
+    """The scans (times t, hits) at the estimate's poses and, where `truth` (S×3, NaN
+    rows where none) has poses, at those too — then both over just those scans, so the
+    two compare."""
     t = np.asarray(t, dtype=float)
-    out: dict[str, Any] = {
-        "note": "the scans' hits at the poses; lower wall spread and entropy: a sharper map"
-    }
     keep = np.ones(len(t), dtype=bool)
     if truth is not None and len(t):
         truth = np.asarray(truth, dtype=float).reshape(len(t), 3)
         known = np.all(np.isfinite(truth), axis=1)
-        if known.any():
-            keep = known
-            kept = [h for h, k in zip(hits, keep, strict=True) if k]
-            out["reference"] = trajectory_sharpness(kept, truth[keep], config)
+        keep = known if known.any() else keep
     kept = [h for h, k in zip(hits, keep, strict=True) if k]
-    out["scans"] = int(keep.sum())
-    out["estimated"] = trajectory_sharpness(kept, estimate.interpolate(t[keep]), config)
+    reference = None
+    if truth is not None and len(t) and np.all(np.isfinite(truth[keep])):
+        reference = place_hits(kept, truth[keep])
+    return ScanClouds(place_hits(kept, estimate.interpolate(t[keep])), reference, len(kept))
+
+
+def scan_map_sharpness(
+    clouds: ScanClouds, scales: Sequence[SharpnessConfig] = SCALES
+) -> dict[str, Any]:
+    """`sharpness` of both clouds at each scale: {"radius_m": [...], "estimated": [one
+    per scale], "reference": [...] (with a reference), "scans", "note"}."""
+    out: dict[str, Any] = {
+        "note": "the scans' hits at the poses; lower wall spread and entropy: a sharper map",
+        "scans": clouds.scans,
+        "radius_m": [c.radius_m for c in scales],
+        "estimated": [sharpness(clouds.estimated, c) for c in scales],
+    }
+    if clouds.reference is not None:
+        out["reference"] = [sharpness(clouds.reference, c) for c in scales]
     return out
 
 

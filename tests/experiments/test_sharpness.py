@@ -10,7 +10,9 @@ import pytest
 
 from experiments.sharpness import (
     SharpnessConfig,
+    local_spread,
     place_hits,
+    scan_clouds,
     scan_map_sharpness,
     sharpness,
     trajectory_sharpness,
@@ -98,12 +100,27 @@ def test_a_replay_is_compared_with_its_reference_over_the_scans_both_have():
     est = Trajectory(t, shifted)
     partial = truth.copy()
     partial[:10] = math.nan  # no reference pose for the first ten scans
-    out = scan_map_sharpness(t, hits, est, partial)
-    assert out["scans"] == len(truth) - 10
-    assert out["reference"]["points"] == out["estimated"]["points"] == 360 * (len(truth) - 10)
-    assert out["estimated"]["wall_spread_median_m"] > out["reference"]["wall_spread_median_m"]
-    alone = scan_map_sharpness(t, hits, est)
+    clouds = scan_clouds(t, hits, est, partial)
+    assert clouds.scans == len(truth) - 10
+    assert clouds.reference is not None
+    assert len(clouds.estimated) == len(clouds.reference) == 360 * (len(truth) - 10)
+    out = scan_map_sharpness(clouds)
+    assert out["radius_m"] == [0.25, 0.5]
+    for ours, theirs in zip(out["estimated"], out["reference"], strict=True):
+        assert ours["wall_spread_median_m"] > theirs["wall_spread_median_m"] + 0.02
+    alone = scan_map_sharpness(scan_clouds(t, hits, est, None))
     assert "reference" not in alone and alone["scans"] == len(truth)
+
+
+def test_the_local_spread_shows_where_a_wall_is_doubled():
+    rng = np.random.default_rng(4)
+    single = _wall(rng, sigma=0.005)
+    doubled = _wall(rng, sigma=0.005, offset=0.2) + np.array([20.0, 0.0])
+    doubled = np.concatenate([doubled, _wall(rng, sigma=0.005) + np.array([20.0, 0.0])])
+    local = local_spread(np.concatenate([single, doubled]), SharpnessConfig(radius_m=0.5))
+    far = local.xy[:, 0] > 21.0  # well inside the doubled stretch
+    near = local.xy[:, 0] < 9.0
+    assert np.median(local.spread_m[near]) < 0.01 < 0.09 < np.median(local.spread_m[far])
 
 
 def test_bad_input_is_named():
@@ -128,7 +145,7 @@ def test_a_laser_log_replay_reports_its_map_sharpness_at_both_sets_of_poses(tmp_
     path = write_carmen(tmp_path / "s.log", scans=6, beams=180)
     res = replay_log(
         open_dataset("carmen", path), tmp_path / "out", localizer="dead-reckoning",
-        figures=False, drag_metrics=False,
+        drag_metrics=False,
     )  # fmt: skip
     m = res.metrics
     sharp = m["map_sharpness"]
@@ -136,6 +153,9 @@ def test_a_laser_log_replay_reports_its_map_sharpness_at_both_sets_of_poses(tmp_
     # the log's longest reading is its range_max, a no-return by the importer's rule
     hits = sum(int(scan_hits(s).sum()) for s in open_dataset("carmen", path).messages([LaserScan]))
     assert hits == 6 * 180 - 1
-    assert sharp["estimated"]["points"] == sharp["reference"]["points"] == hits
-    assert m["wall_spread_m"] == sharp["estimated"]["wall_spread_median_m"] > 0
-    assert m["reference_wall_spread_m"] == sharp["reference"]["wall_spread_median_m"] > 0
+    for ours, theirs in zip(sharp["estimated"], sharp["reference"], strict=True):
+        assert ours["points"] == theirs["points"] == hits
+    assert m["wall_spread_m"] == sharp["estimated"][0]["wall_spread_median_m"] > 0
+    assert m["reference_wall_spread_coarse_m"] == sharp["reference"][1]["wall_spread_median_m"]
+    # and the figure of where the walls spread, at both sets of poses
+    assert res.files["sharpness_png"].stat().st_size > 10_000
