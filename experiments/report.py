@@ -289,8 +289,11 @@ def sharpness_figure(clouds: ScanClouds, *, localizer: str, log: str | Path) -> 
         if len(xy)
         else (0.0, 1.0, 0.0, 1.0)
     )
-    w, h = _figsize(box, 5.6, legend_width=0.0)
-    fig = Figure(figsize=(len(panels) * w + 1.2, h + 0.2), layout="constrained")
+    ratio = (box[3] - box[2]) / max(box[1] - box[0], 1e-9)
+    w = 5.6 if ratio <= 1.3 else max(7.5 / ratio, 2.5)  # a tall map: narrower panels
+    fig = Figure(
+        figsize=(len(panels) * (w + 0.8) + 1.2, min(w * ratio, 9.0) + 1.2), layout="constrained"
+    )
     axes = np.atleast_1d(fig.subplots(1, len(panels), sharex=True, sharey=True))
     vmax = 0.15
     art = None

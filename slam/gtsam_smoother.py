@@ -149,6 +149,7 @@ from slam.association import (
 )
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
 from slam.gtsam_slip import slip_odometry_factor, slip_walk_factor
+from slam.loop_consensus import HeldMatch, HeldMatches, LoopConsensus, correction
 from slam.measurement import (
     BEARING_SIGMA_RAD,
     RANGE_SIGMA_FRAC,
@@ -236,12 +237,7 @@ class MatchGate:
         coerce(self, robust=RobustKernel)
 
     def accepts(self, res: MatchResult) -> bool:
-        return res.accepted(
-            self.min_inlier_fraction,
-            self.max_conflict_fraction,
-            self.max_ambiguity,
-            self.min_constraint,
-        )
+        return res.passes(self)
 
 
 @dataclass(frozen=True)
@@ -314,7 +310,8 @@ class LoopClosures:
     per scan, matched to a submap of ± submap_half scans around it through `gate`, and
     kept when its disagreement with the estimate passes gate_chi2 (0: no gate); after
     loop closures iSAM2 runs extra_updates more updates; place: loops found by place
-    recognition when the position is too uncertain for this search."""
+    recognition when the position is too uncertain for this search; consensus: matches
+    both gates turn away, added together when several agree (slam.loop_consensus)."""
 
     enabled: bool = True
     search_radius_m: float = 2.0
@@ -332,6 +329,7 @@ class LoopClosures:
     gate_chi2: float = 16.27
     extra_updates: int = 2
     place: PlaceRecognition = field(default_factory=PlaceRecognition)
+    consensus: LoopConsensus = field(default_factory=LoopConsensus)
 
     def __post_init__(self) -> None:
         if self.min_separation < 1:
@@ -538,6 +536,7 @@ class GtsamSmoother(Localizer):
         # scan matching
         self._scans: list[_ScanKeyframe] = []
         self._since_place = 0  # place searches wanted since the last one (_place_closure)
+        self._turned_away = HeldMatches(config.loop.consensus)  # loop matches held
         self._scan_delta = np.zeros(3)  # odometry since the last kept scan, and its cov
         self._scan_cov = np.zeros((3, 3))
         self._scan_gap = False  # the odometry since the last kept scan has a gap
@@ -568,6 +567,7 @@ class GtsamSmoother(Localizer):
                 place_searches=0,
                 place_candidates=0,
                 place_closures=0,
+                loop_consensus=0,
                 scan_matching_s=0.0,
             )
 
@@ -1028,12 +1028,18 @@ class GtsamSmoother(Localizer):
         sxy = math.sqrt(max(float(eigh2(marginal[:2, :2])[0][-1]), 0.0))
         chosen, dist = self._loop_candidates(poses, here, sxy)
         added = sum(self._try_loop(poses, here, i, float(dist[i])) for i in chosen)
+        if not added:  # those turned away may agree with the ones held before them
+            for h in self._turned_away.consensus(len(self._scans) - 1, here):
+                self._add_match(h.old_kf, h.new_kf, h.result, loop.gate.robust, loop.gate.robust_k)
+                self.counts["loop_consensus"] += 1
+                added += 1
         updates = loop.extra_updates
         if not added and loop.gate.window_sigmas * sxy > loop.gate.window_xy_m[1]:
             # the search above cannot reach where the scan may be: recognise the place
             added = self._place_closure(poses)
             updates = loop.place.updates
         if added:
+            self._turned_away.clear()  # measured against an estimate about to move
             self._flush()
             for _ in range(updates):
                 self.isam.update()
@@ -1149,6 +1155,10 @@ class GtsamSmoother(Localizer):
                 self.counts["loop_gated"] += 1
         if not ok:
             self.counts["loop_rejected"] += 1
+            if loop.consensus.gate.accepts(res):
+                fix = correction(poses[cand.kf], res.pose, here)
+                held = HeldMatch(i, len(self._scans) - 1, cand.kf, cur.kf, res, fix)
+                self._turned_away.hold(held)
             return False
         self._add_match(cand.kf, cur.kf, res, g.robust, g.robust_k)
         self.counts["loop_closures"] += 1

@@ -185,6 +185,16 @@ class MatchResult:
             and bool(np.all(np.isfinite(self.covariance)))
         )
 
+    def passes(self, gate) -> bool:
+        """`accepted` at a gate's thresholds: any object with min_inlier_fraction,
+        max_conflict_fraction, max_ambiguity and min_constraint."""
+        return self.accepted(
+            gate.min_inlier_fraction,
+            gate.max_conflict_fraction,
+            gate.max_ambiguity,
+            gate.min_constraint,
+        )
+
 
 # ---------------------------------------------------------------------------------------
 # points
