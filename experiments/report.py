@@ -27,7 +27,7 @@ from matplotlib.patches import Patch
 
 from experiments.metrics import GpsFit, associate
 from experiments.pipeline import Pipeline
-from experiments.sharpness import SCALES, ScanClouds, local_spread, scan_clouds
+from experiments.sharpness import ScanSharpness
 from hardware.messages import BrakeCommand, Collision
 from mapping.export import MapRaster, map_raster
 from mapping.grid import GridExtent
@@ -273,16 +273,17 @@ def maps_figure(
     return fig
 
 
-def sharpness_figure(clouds: ScanClouds, *, localizer: str, log: str | Path) -> Figure:
+def sharpness_figure(sharp: ScanSharpness, *, localizer: str, log: str | Path) -> Figure:
     """sharpness.png: a laser replay's scan hits at the localizer's poses (and at the
     reference's, side by side), each coloured by the spread across the wall around it
-    within 50 cm (experiments.sharpness): walls seen twice a few decimetres apart show
-    up warm, where a loop was not closed or a scan was misplaced."""
-    cfg = SCALES[1]
-    panels = [(f"{localizer} poses", clouds.estimated)]
-    if clouds.reference is not None:
-        panels.append(("reference poses", clouds.reference))
-    spreads = [local_spread(cloud, cfg) for _, cloud in panels]
+    at the coarsest scale (50 cm; experiments.sharpness): walls seen twice a few
+    decimetres apart show up warm, where a loop was not closed or a scan was misplaced."""
+    cfg = sharp.scales[-1]
+    panels = [f"{localizer} poses"]
+    spreads = [sharp.estimated[-1]]
+    if sharp.reference is not None:
+        panels.append("reference poses")
+        spreads.append(sharp.reference[-1])
     xy = np.concatenate([sp.xy for sp in spreads] + [np.zeros((0, 2))])
     box = (
         tuple(np.r_[xy.min(axis=0) - 1.0, xy.max(axis=0) + 1.0][[0, 2, 1, 3]])
@@ -297,7 +298,7 @@ def sharpness_figure(clouds: ScanClouds, *, localizer: str, log: str | Path) -> 
     axes = np.atleast_1d(fig.subplots(1, len(panels), sharex=True, sharey=True))
     vmax = 0.15
     art = None
-    for ax, (name, _), sp in zip(axes, panels, spreads, strict=True):
+    for ax, name, sp in zip(axes, panels, spreads, strict=True):
         order = np.argsort(sp.spread_m)  # the widest on top
         art = ax.scatter(
             *sp.xy[order].T, c=sp.spread_m[order], s=0.4, cmap="viridis", vmin=0.0,
@@ -488,9 +489,10 @@ def write_figures(
     *,
     localizer: str,
     log: str | Path,
+    sharpness: ScanSharpness | None = None,
 ) -> dict[str, Path]:
     """trajectory.png; with ground truth errors.png, and with the reference map too
-    maps_side_by_side.png; for laser scans sharpness.png."""
+    maps_side_by_side.png; with a laser replay's `sharpness` sharpness.png."""
     named = {"localizer": localizer, "log": log}
     rec = pipeline.recorded
     files = {
@@ -512,9 +514,8 @@ def write_figures(
             **named,
         )
         files["maps_png"] = save(fig, out / "maps_side_by_side.png")
-    if rec.scan_t and len(est) > 1:
-        clouds = scan_clouds(rec.scan_t, rec.scan_hits, est, np.array(rec.scan_truth))
-        files["sharpness_png"] = save(sharpness_figure(clouds, **named), out / "sharpness.png")
+    if sharpness is not None:
+        files["sharpness_png"] = save(sharpness_figure(sharpness, **named), out / "sharpness.png")
     return files
 
 

@@ -25,7 +25,7 @@ from experiments.config import Configured, configure, propose
 from experiments.drag import DragConfig
 from experiments.mitigations import Mitigated, check_calibration, check_source, resolve
 from experiments.pipeline import LoopConfig, Pipeline
-from experiments.sharpness import scan_clouds, scan_map_sharpness
+from experiments.sharpness import ScanSharpness, scan_clouds, scan_sharpness
 from experiments.simulation import VERSION, RunSpec, simulate
 from hardware.calibration import WalkerCalibration
 from hardware.datasets import Dataset
@@ -143,6 +143,7 @@ class _Replay:
     reference_commands: drag.CommandRecomputer | None = None
     observed: drag.Observed | None = None
     runtime_s: float = 0.0
+    sharpness: ScanSharpness | None = None  # a laser replay's map sharpness
 
 
 def replay_log(
@@ -402,7 +403,8 @@ def _evaluate(r: _Replay):
         metrics.update(M.gps_errors(est, np.array(r.trial.metadata["gps"]["rows"])))
     if rec.scan_t and len(est) > 1:
         clouds = scan_clouds(rec.scan_t, rec.scan_hits, est, np.array(rec.scan_truth))
-        metrics["map_sharpness"] = sharp = scan_map_sharpness(clouds)
+        r.sharpness = scan_sharpness(clouds)  # sharpness.png shows the same spreads
+        metrics["map_sharpness"] = sharp = r.sharpness.metrics()
         for who, prefix in (("estimated", ""), ("reference", "reference_")):
             if who in sharp:
                 fine, coarse = (s["wall_spread_median_m"] for s in sharp[who])
@@ -474,9 +476,11 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
     if figures:
         from experiments.report import write_figures
 
-        files.update(
-            write_figures(out, pipeline, est, gt, r.outlines, localizer=r.localizer, log=r.log_path)
-        )
+        figs = write_figures(
+            out, pipeline, est, gt, r.outlines, localizer=r.localizer, log=r.log_path,
+            sharpness=r.sharpness,
+        )  # fmt: skip
+        files.update(figs)
     loc = pipeline.localizer
     marks: dict[int, np.ndarray] = {}  # the landmarks it made: for gps.png, landmarks.json
     if isinstance(loc, LandmarkMapper):

@@ -97,10 +97,9 @@ def local_spread(cloud: np.ndarray, config: SharpnessConfig | None = None) -> Lo
     return LocalSpread(queries[ok], np.sqrt(lam[ok]), logdet[ok], len(finite))
 
 
-def sharpness(cloud: np.ndarray, config: SharpnessConfig | None = None) -> dict[str, float]:
-    """Wall spread and map entropy of a world cloud (N×2; module doc). NaN when no
-    point has min_neighbours within the radius."""
-    local = local_spread(cloud, config)
+def summary(local: LocalSpread) -> dict[str, float]:
+    """Wall spread (median, rms) and map entropy of a cloud's local spreads (module doc);
+    NaN when no point was evaluated."""
     spread, n = local.spread_m, len(local.spread_m)
     return {
         "wall_spread_median_m": float(np.median(spread)) if n else math.nan,
@@ -111,6 +110,12 @@ def sharpness(cloud: np.ndarray, config: SharpnessConfig | None = None) -> dict[
         "points": local.points,
         "evaluated": n,
     }
+
+
+def sharpness(cloud: np.ndarray, config: SharpnessConfig | None = None) -> dict[str, float]:
+    """Wall spread and map entropy of a world cloud (N×2; module doc). NaN when no
+    point has min_neighbours within the radius."""
+    return summary(local_spread(cloud, config))
 
 
 def trajectory_sharpness(
@@ -145,29 +150,46 @@ def scan_clouds(
     keep = np.ones(len(t), dtype=bool)
     if truth is not None and len(t):
         truth = np.asarray(truth, dtype=float).reshape(len(t), 3)
-        known = np.all(np.isfinite(truth), axis=1)
-        keep = known if known.any() else keep
+        keep = np.all(np.isfinite(truth), axis=1)
+    if not keep.any():  # no reference pose at all: the estimate over every scan
+        keep, truth = np.ones(len(t), dtype=bool), None
     kept = [h for h, k in zip(hits, keep, strict=True) if k]
-    reference = None
-    if truth is not None and len(t) and np.all(np.isfinite(truth[keep])):
-        reference = place_hits(kept, truth[keep])
+    reference = None if truth is None else place_hits(kept, truth[keep])
     return ScanClouds(place_hits(kept, estimate.interpolate(t[keep])), reference, len(kept))
 
 
-def scan_map_sharpness(
-    clouds: ScanClouds, scales: Sequence[SharpnessConfig] = SCALES
-) -> dict[str, Any]:
-    """`sharpness` of both clouds at each scale: {"radius_m": [...], "estimated": [one
-    per scale], "reference": [...] (with a reference), "scans", "note"}."""
-    out: dict[str, Any] = {
-        "note": "the scans' hits at the poses; lower wall spread and entropy: a sharper map",
-        "scans": clouds.scans,
-        "radius_m": [c.radius_m for c in scales],
-        "estimated": [sharpness(clouds.estimated, c) for c in scales],
-    }
+@dataclass(frozen=True, eq=False)
+class ScanSharpness:
+    """A replay's scan clouds' local spreads at each of `scales` (the estimate's, and the
+    reference's when there is one): computed once, for the metrics and the figure."""
+
+    scans: int
+    scales: tuple[SharpnessConfig, ...]
+    estimated: list[LocalSpread]
+    reference: list[LocalSpread] | None
+
+    def metrics(self) -> dict[str, Any]:
+        """{"radius_m": [...], "estimated": [a `summary` per scale], "reference": [...]
+        (with a reference), "scans", "note"}."""
+        out: dict[str, Any] = {
+            "note": "the scans' hits at the poses; lower wall spread and entropy: a sharper map",
+            "scans": self.scans,
+            "radius_m": [c.radius_m for c in self.scales],
+            "estimated": [summary(local) for local in self.estimated],
+        }
+        if self.reference is not None:
+            out["reference"] = [summary(local) for local in self.reference]
+        return out
+
+
+def scan_sharpness(clouds: ScanClouds, scales: Sequence[SharpnessConfig] = SCALES) -> ScanSharpness:
+    """The local spreads of both clouds at each scale."""
+    scales = tuple(scales)
+    reference = None
     if clouds.reference is not None:
-        out["reference"] = [sharpness(clouds.reference, c) for c in scales]
-    return out
+        reference = [local_spread(clouds.reference, c) for c in scales]
+    estimated = [local_spread(clouds.estimated, c) for c in scales]
+    return ScanSharpness(clouds.scans, scales, estimated, reference)
 
 
 @njit(cache=True)

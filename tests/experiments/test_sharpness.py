@@ -13,7 +13,7 @@ from experiments.sharpness import (
     local_spread,
     place_hits,
     scan_clouds,
-    scan_map_sharpness,
+    scan_sharpness,
     sharpness,
     trajectory_sharpness,
 )
@@ -104,11 +104,11 @@ def test_a_replay_is_compared_with_its_reference_over_the_scans_both_have():
     assert clouds.scans == len(truth) - 10
     assert clouds.reference is not None
     assert len(clouds.estimated) == len(clouds.reference) == 360 * (len(truth) - 10)
-    out = scan_map_sharpness(clouds)
+    out = scan_sharpness(clouds).metrics()
     assert out["radius_m"] == [0.25, 0.5]
     for ours, theirs in zip(out["estimated"], out["reference"], strict=True):
         assert ours["wall_spread_median_m"] > theirs["wall_spread_median_m"] + 0.02
-    alone = scan_map_sharpness(scan_clouds(t, hits, est, None))
+    alone = scan_sharpness(scan_clouds(t, hits, est, None)).metrics()
     assert "reference" not in alone and alone["scans"] == len(truth)
 
 
