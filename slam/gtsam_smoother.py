@@ -60,14 +60,27 @@ search of `slam.scan_matching.correlative_search`). Each kept scan is matched
 - for loop closures against older kept scans (at least `loop.min_separation` kept scans
   back) within `loop.search_radius_m` plus the search window of the current estimate.
   The `loop.max_candidates` nearest (one per stretch of neighbouring scans) are tried,
-  each against a submap of the candidate and its `loop.submap_half` neighbours either
-  side, searching ± `loop.gate.window_sigmas` standard deviations of the *relative* pose
+  each against a submap of 2·`loop.submap_half` + 1 scans: the candidate and, of the
+  scans within ± `loop.submap_span` of it, those that saw most of what the new scan sees
+  (slam.scan_overlap: the share of its 1 m cells they cover, at the estimate; on a
+  revisit driven the other way the scans that faced the same walls, where the
+  candidate's neighbours faced the other way); searching ± `loop.gate.window_sigmas`
+  standard deviations of the *relative* pose
   (from iSAM2's joint marginal of the two keyframes; clipped to `loop.gate.window_xy_m`,
   `loop.gate.window_theta_rad`). A match that passes the `loop.gate` thresholds and whose
   disagreement with the estimate passes a chi-squared gate (`loop.gate_chi2` on the
   relative covariance plus the match's; 16.27 = 99.9 % for 3 degrees of freedom)
   becomes a `BetweenFactorPose2` with a robust noise model (`loop.gate.robust`,
-  `loop.gate.robust_k`); after loop closures iSAM2 runs `loop.extra_updates` more updates;
+  `loop.gate.robust_k`); after loop closures iSAM2 runs `loop.extra_updates` more updates.
+  Besides them, the `loop.overlap_candidates` old scans that cover the most of the new
+  scan's footprint (at least `loop.min_overlap`, within `loop.overlap_radius_m`) are
+  matched the same way, wherever they stand; such a match only enters the graph with
+  others that agree (slam.loop_consensus), as the estimate chose it by what it sees.
+  Both are off by default (`loop.submap_span` = `loop.submap_half`,
+  `loop.overlap_candidates` 0): on a hall driven there and back they close the way
+  back (tests/slam/test_scan_overlap.py), but on the nine laser logs they were no
+  better than the spread (BENCHMARKS.md, "Laser logs: loop submaps of the scans that
+  saw the same walls");
 - for loop closures found by place recognition (`loop.place`, laser scans), when the
   position is too uncertain for that search (its window clipped at its largest): the
   old kept scans whose ring keys (slam.place_recognition: per range ring, the share of
@@ -120,6 +133,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import gtsam
@@ -182,6 +196,7 @@ from slam.scan_matching import (
     place,
     relative_guess,
 )
+from slam.scan_overlap import chosen_by_overlap, footprint, overlap
 from slam.slip import SlipEstimation, increment_with_slip, slip_diagnostics
 from slam.trajectory import Trajectory
 
@@ -307,17 +322,28 @@ class PlaceRecognition:
 class LoopClosures:
     """Loop closures: enabled; a candidate is a kept scan within search_radius_m (plus
     the search window) at least min_separation keyframes back, at most max_candidates
-    per scan, matched to a submap of ± submap_half scans around it through `gate`, and
+    per scan, and besides them up to overlap_candidates old scans that cover at least
+    min_overlap of the new scan's footprint (its overlap_cell_m cells, at the estimate;
+    slam.scan_overlap; old scans within overlap_radius_m). Each is matched to a submap of
+    2·submap_half + 1 scans: the candidate and, of the scans within ± submap_span of it,
+    those that cover most of the new scan's footprint (submap_span = submap_half: its
+    neighbours), through `gate`, and
     kept when its disagreement with the estimate passes gate_chi2 (0: no gate); after
     loop closures iSAM2 runs extra_updates more updates; place: loops found by place
     recognition when the position is too uncertain for this search; consensus: matches
-    both gates turn away, added together when several agree (slam.loop_consensus)."""
+    both gates turn away, and those of overlap candidates, added together when several
+    agree (slam.loop_consensus)."""
 
     enabled: bool = True
     search_radius_m: float = 2.0
     min_separation: int = 10
     max_candidates: int = 3
     submap_half: int = 2
+    submap_span: int = 2
+    overlap_candidates: int = 0
+    min_overlap: float = 0.3
+    overlap_cell_m: float = 1.0
+    overlap_radius_m: float = 20.0
     gate: MatchGate = field(
         default_factory=lambda: MatchGate(
             window_xy_m=(0.3, 1.5),
@@ -334,6 +360,16 @@ class LoopClosures:
     def __post_init__(self) -> None:
         if self.min_separation < 1:
             raise ValueError(f"min_separation must be >= 1, got {self.min_separation}")
+        if not 0 <= self.submap_half <= self.submap_span:
+            raise ValueError(
+                f"need 0 <= submap_half <= submap_span, got {self.submap_half}, {self.submap_span}"
+            )
+        if self.overlap_candidates < 0:
+            raise ValueError(f"overlap_candidates must be >= 0, got {self.overlap_candidates}")
+        if not 0 <= self.min_overlap <= 1:
+            raise ValueError(f"min_overlap must be in [0, 1], got {self.min_overlap}")
+        if not (self.overlap_cell_m > 0 and self.overlap_radius_m > 0):
+            raise ValueError("overlap_cell_m and overlap_radius_m must be > 0")
 
 
 @dataclass(frozen=True)
@@ -452,6 +488,7 @@ class _ScanKeyframe:
     t: float
     scan: Scan
     key: np.ndarray | None = None  # ring key (laser scans; slam.place_recognition)
+    cells: np.ndarray | None = None  # footprint (slam.scan_overlap)
 
 
 def _robust(kind: str, k: float, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
@@ -564,6 +601,7 @@ class GtsamSmoother(Localizer):
                 loop_closures=0,
                 loop_rejected=0,
                 loop_gated=0,
+                loop_held=0,
                 place_searches=0,
                 place_candidates=0,
                 place_closures=0,
@@ -931,7 +969,8 @@ class GtsamSmoother(Localizer):
         if isinstance(msg, LaserScan) and c.loop.place.enabled:
             pl = c.loop.place
             key = ring_key(msg, pl.rings, pl.sectors, pl.range_m)
-        self._scans.append(_ScanKeyframe(self._kf, msg.t, pts, key))
+        cells = footprint(pts.points, c.loop.overlap_cell_m)
+        self._scans.append(_ScanKeyframe(self._kf, msg.t, pts, key, cells))
         self._scan_delta = np.zeros(3)
         self._scan_cov = np.zeros((3, 3))
         self._scan_kf0 = self._kf
@@ -949,7 +988,7 @@ class GtsamSmoother(Localizer):
         poses = gtsam.utilities.extractPose2(self.isam.calculateEstimate())
         return np.asarray(poses, dtype=float).reshape(-1, 3)
 
-    def _submap(self, poses: np.ndarray, indices: range, frame_kf: int) -> Reference:
+    def _submap(self, poses: np.ndarray, indices: Sequence[int], frame_kf: int) -> Reference:
         scans = [self._scans[i] for i in indices]
         placed = place(poses[[s.kf for s in scans]], [s.scan for s in scans], poses[frame_kf])
         return Reference(placed, self._matcher)
@@ -1027,7 +1066,10 @@ class GtsamSmoother(Localizer):
         marginal = self.isam.marginalCovariance(X(self._scans[-1].kf))
         sxy = math.sqrt(max(float(eigh2(marginal[:2, :2])[0][-1]), 0.0))
         chosen, dist = self._loop_candidates(poses, here, sxy)
-        added = sum(self._try_loop(poses, here, i, float(dist[i])) for i in chosen)
+        shares = self._overlaps(poses, here, dist)
+        by_overlap = self._overlap_candidates(shares, chosen)
+        added = sum(self._try_loop(poses, here, i, float(dist[i]), shares) for i in chosen)
+        added += sum(self._try_loop(poses, here, i, None, shares) for i in by_overlap)
         if not added:  # those turned away may agree with the ones held before them
             for h in self._turned_away.consensus(len(self._scans) - 1, here):
                 self._add_match(h.old_kf, h.new_kf, h.result, loop.gate.robust, loop.gate.robust_k)
@@ -1064,6 +1106,35 @@ class GtsamSmoother(Localizer):
                 if len(chosen) >= loop.max_candidates:
                     break
         return chosen, dist
+
+    def _overlaps(self, poses: np.ndarray, here: np.ndarray, dist: np.ndarray) -> np.ndarray:
+        """Per old kept scan (dist's positions): the share of the newest scan's
+        footprint it covers at the estimate; 0 beyond loop.overlap_radius_m."""
+        loop = self.config.loop
+        shares = np.zeros(len(dist))
+        if loop.submap_span == loop.submap_half and loop.overlap_candidates == 0:
+            return shares  # nothing asks for them
+        near = np.flatnonzero(dist <= loop.overlap_radius_m)
+        old = [self._scans[i] for i in near]
+        cur = self._scans[-1]
+        shares[near] = overlap(
+            here, cur.cells, poses[[sc.kf for sc in old]].reshape(-1, 3),
+            [sc.cells for sc in old], loop.overlap_cell_m,
+        )  # fmt: skip
+        return shares
+
+    def _overlap_candidates(self, shares: np.ndarray, chosen: list[int]) -> list[int]:
+        """Up to loop.overlap_candidates old scans that cover the most of the newest
+        scan's footprint (at least loop.min_overlap), one per stretch of neighbouring
+        scans, none in the stretch of a candidate already chosen."""
+        loop = self.config.loop
+        picked: list[int] = []
+        for i in np.argsort(-shares, kind="stable").tolist():
+            if len(picked) >= loop.overlap_candidates or shares[i] < loop.min_overlap:
+                break
+            if all(abs(i - j) > 2 * loop.submap_half for j in chosen + picked):
+                picked.append(i)
+        return picked
 
     def _neighbours(self, i: int, half: int) -> range:
         """Kept scan i and its `half` neighbours either side, none of the newest
@@ -1128,10 +1199,15 @@ class GtsamSmoother(Localizer):
         self.counts["place_closures"] += 1
         return True
 
-    def _try_loop(self, poses: np.ndarray, here: np.ndarray, i: int, dist: float) -> bool:
-        """Match the newest scan against kept scan i's submap, searched within ±
-        window_sigmas of their relative uncertainty; add the factor if the gate accepts
-        it (and the chi-squared gate, when on, finds it consistent)."""
+    def _try_loop(
+        self, poses: np.ndarray, here: np.ndarray, i: int, dist: float | None,
+        shares: np.ndarray,
+    ) -> bool:  # fmt: skip
+        """Match the newest scan against kept scan i's submap (the scans near i that
+        cover most of its footprint: `shares`), searched within ± window_sigmas of
+        their relative uncertainty; add the factor if the gate accepts it (and the
+        chi-squared gate, when on, finds it consistent). dist: how far i is, None for a
+        candidate chosen by overlap (not by distance)."""
         loop = self.config.loop
         cand, cur = self._scans[i], self._scans[-1]
         guess = relative_guess(poses[cand.kf], here)
@@ -1140,9 +1216,14 @@ class GtsamSmoother(Localizer):
         sth = math.sqrt(max(float(rel_cov[2, 2]), 0.0))
         wxy = float(np.clip(loop.gate.window_sigmas * sxy, *loop.gate.window_xy_m))
         wth = float(np.clip(loop.gate.window_sigmas * sth, *loop.gate.window_theta_rad))
-        if dist > loop.search_radius_m + wxy:
+        if dist is not None and dist > loop.search_radius_m + wxy:
             return False
-        ref = self._submap(poses, self._neighbours(i, loop.submap_half), cand.kf)
+        span = self._neighbours(i, loop.submap_span)
+        members = chosen_by_overlap(
+            shares[span.start : span.stop], i - span.start, loop.submap_span,
+            2 * loop.submap_half + 1,
+        )  # fmt: skip
+        ref = self._submap(poses, [span.start + m for m in members], cand.kf)
         res = match(ref, cur.scan, guess, wxy, wth, self._matcher)
         self.counts["loop_candidates"] += 1
         g = loop.gate
@@ -1153,8 +1234,11 @@ class GtsamSmoother(Localizer):
             ok = dot(d, solve(s_, d)) <= loop.gate_chi2
             if not ok:
                 self.counts["loop_gated"] += 1
-        if not ok:
-            self.counts["loop_rejected"] += 1
+        if not ok or dist is None:
+            # a candidate chosen by overlap lies where the estimate says its walls are,
+            # not near the estimate: its match alone is not enough, only with others
+            # that agree (slam.loop_consensus)
+            self.counts["loop_rejected" if not ok else "loop_held"] += 1
             if loop.consensus.gate.accepts(res):
                 fix = correction(poses[cand.kf], res.pose, here)
                 held = HeldMatch(i, len(self._scans) - 1, cand.kf, cur.kf, res, fix)

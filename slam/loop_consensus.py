@@ -7,7 +7,11 @@ covariance). On a revisit after a stretch that drifted, the matches against the 
 scans can be right and still be turned away: the overlap is partial (inlier fractions
 of 0.3-0.5) and the graph, which has not seen the drift, is sure of itself (fhw's
 revisit at t ≈ 1670 s: a dozen matches against five old scans, all saying the walker
-is 0.8 m and 1-3° from its estimate, rejected one by one; BENCHMARKS.md).
+is 0.8 m and 1-3° from its estimate, rejected one by one; BENCHMARKS.md). The same
+holds for the matches of candidates chosen by what they saw (slam.scan_overlap) rather
+than by how near they are: found through the estimate's picture of the walls, each
+alone could be a look-alike (seattle: one 1.15 m and 16° off broke the map), so they
+are only ever added this way.
 
 Such matches are held instead of dropped when a looser `gate` accepts them, each with
 the correction C it implies (the SE(2) transform with implied pose = C ∘ estimate). When

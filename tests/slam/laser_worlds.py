@@ -70,20 +70,35 @@ def loop_messages(laps: int = 2, seed: int = 5):
     at 10 Hz with a 4 % speed error and a 0.03 rad/s yaw-rate bias; a 270° laser scan
     (1 cm noise, drawn with `seed`) every 0.5 s. Returns messages and the true
     trajectory."""
-    rng = np.random.default_rng(seed)
     corners = np.array([(1.5, 1.5), (8.5, 1.5), (8.5, 4.2), (5.0, 4.2), (5.0, 6.5), (1.5, 6.5)])
-    path = np.vstack([corners] * laps + [corners[:1]])
+    return drive_messages(ROOM, np.vstack([corners] * laps + [corners[:1]]), seed=seed)
+
+
+def drive_messages(
+    world: np.ndarray,
+    path: np.ndarray,
+    seed: int = 5,
+    fov: float = math.radians(270.0),
+    speed_error: float = 0.04,
+    yaw_bias: float = 0.03,
+):
+    """Drive through `world` along the corners of `path` (turning in place at each, the
+    first facing the second) at 0.5 m/s; velocity odometry at 10 Hz with a speed error
+    (a fraction) and a yaw-rate bias [rad/s]; a laser scan of `fov` (1 cm noise, drawn
+    with `seed`) every 0.5 s. Returns messages and the true trajectory."""
+    rng = np.random.default_rng(seed)
     dt, v, w_turn = 0.1, 0.5, 0.8
-    pose = np.array([1.5, 1.5, 0.0])
+    d0 = path[1] - path[0]
+    pose = np.array([*path[0], math.atan2(d0[1], d0[0])])
     t = 0.0
     msgs, truth = [], [(t, *pose)]
     last_scan = -1.0
 
     def emit(v_true, w_true):
         nonlocal pose, t, last_scan
-        msgs.append(VelocityOdometry(t, 1.04 * v_true, w_true + 0.03))
+        msgs.append(VelocityOdometry(t, (1 + speed_error) * v_true, w_true + yaw_bias))
         if t - last_scan >= 0.5 - 1e-9:
-            msgs.append(render_scan(ROOM, pose, t=t, noise_m=0.01, rng=rng))
+            msgs.append(render_scan(world, pose, t=t, fov=fov, noise_m=0.01, rng=rng))
             last_scan = t
         h = pose[2] + 0.5 * w_true * dt
         pose = np.array(
