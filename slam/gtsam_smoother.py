@@ -357,6 +357,11 @@ class LoopClosures:
     place: PlaceRecognition = field(default_factory=PlaceRecognition)
     consensus: LoopConsensus = field(default_factory=LoopConsensus)
 
+    @property
+    def by_overlap(self) -> bool:
+        """Whether submaps or candidates are chosen by overlap (scans need footprints)."""
+        return self.submap_span > self.submap_half or self.overlap_candidates > 0
+
     def __post_init__(self) -> None:
         if self.min_separation < 1:
             raise ValueError(f"min_separation must be >= 1, got {self.min_separation}")
@@ -969,7 +974,7 @@ class GtsamSmoother(Localizer):
         if isinstance(msg, LaserScan) and c.loop.place.enabled:
             pl = c.loop.place
             key = ring_key(msg, pl.rings, pl.sectors, pl.range_m)
-        cells = footprint(pts.points, c.loop.overlap_cell_m)
+        cells = footprint(pts.points, c.loop.overlap_cell_m) if c.loop.by_overlap else None
         self._scans.append(_ScanKeyframe(self._kf, msg.t, pts, key, cells))
         self._scan_delta = np.zeros(3)
         self._scan_cov = np.zeros((3, 3))
@@ -1112,7 +1117,7 @@ class GtsamSmoother(Localizer):
         footprint it covers at the estimate; 0 beyond loop.overlap_radius_m."""
         loop = self.config.loop
         shares = np.zeros(len(dist))
-        if loop.submap_span == loop.submap_half and loop.overlap_candidates == 0:
+        if not loop.by_overlap:
             return shares  # nothing asks for them
         near = np.flatnonzero(dist <= loop.overlap_radius_m)
         old = [self._scans[i] for i in near]

@@ -25,12 +25,19 @@ def footprint(points: np.ndarray, cell_m: float) -> np.ndarray:
     return (cells + 0.5) * cell_m
 
 
+def _cell_id(x: np.ndarray, y: np.ndarray, cell_m: float) -> np.ndarray:
+    """One int64 id per world point: the cell_m cell it falls in."""
+    kx = np.floor(x / cell_m).astype(np.int64)
+    ky = np.floor(y / cell_m).astype(np.int64)
+    return (kx << 32) ^ (ky & 0xFFFFFFFF)
+
+
 def _cell_ids(pose: np.ndarray, centres: np.ndarray, cell_m: float) -> np.ndarray:
-    """The world cells (one int64 id each, unique) of footprint centres placed at pose."""
+    """The world cells (unique ids) of footprint centres placed at pose."""
     if len(centres) == 0:
         return np.zeros(0, dtype=np.int64)
-    k = np.floor(transform_points(pose, centres) / cell_m).astype(np.int64)
-    return np.unique((k[:, 0] << 32) ^ (k[:, 1] & 0xFFFFFFFF))
+    world = transform_points(pose, centres)
+    return np.unique(_cell_id(world[:, 0], world[:, 1], cell_m))
 
 
 def overlap(
@@ -56,9 +63,9 @@ def overlap(
     s = np.repeat([math.sin(float(p[2])) for p in poses], sizes)
     tx = np.repeat(np.asarray(poses, dtype=float)[:, 0], sizes)
     ty = np.repeat(np.asarray(poses, dtype=float)[:, 1], sizes)
-    kx = np.floor(((c * pts[:, 0] - s * pts[:, 1]) + tx) / cell_m).astype(np.int64)
-    ky = np.floor(((s * pts[:, 0] + c * pts[:, 1]) + ty) / cell_m).astype(np.int64)
-    ids = (kx << 32) ^ (ky & 0xFFFFFFFF)
+    ids = _cell_id(
+        (c * pts[:, 0] - s * pts[:, 1]) + tx, (s * pts[:, 0] + c * pts[:, 1]) + ty, cell_m
+    )
     at = np.minimum(np.searchsorted(new, ids), len(new) - 1)
     hit = new[at] == ids
     # one count per (old scan, new cell), however many of its cells land there
