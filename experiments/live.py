@@ -43,6 +43,7 @@ from experiments.calibration_override import CalibrationOverride, applied
 from experiments.config import configure
 from experiments.mitigations import Mitigated, check_calibration, resolve
 from experiments.pipeline import LoopConfig, Pipeline, run_closed_loop
+from experiments.warm_up import warm_up
 from hardware.arduino import ArduinoBoard, BoardConfig, BoardStats
 from hardware.calibration import WalkerCalibration
 from hardware.clock import HostClock
@@ -138,6 +139,7 @@ class LiveResult:
     files: dict[str, Path]
     pipeline: Pipeline
     sources: dict[str, Any]  # per device: hardware.live.DeviceStats
+    warm_up_s: float  # compiling the kernels before the devices opened (wall time)
 
 
 class ThreadedRecorder:
@@ -220,9 +222,11 @@ class LiveRun:
         options: LiveOptions,
         on_status: Callable[[LiveStatus], None] | None = None,
         status_hz: float = 4.0,
+        on_phase: Callable[[str], None] | None = None,
     ) -> None:
         self.options = options
         self.on_status = on_status
+        self.on_phase = on_phase  # what the run does before its loop, for the user
         self.status_period = 1.0 / status_hz
         self.clock = HostClock()
         self._world: subprocess.Popen | None = None
@@ -246,6 +250,8 @@ class LiveRun:
         self.recorder: ThreadedRecorder | None = None
         self.view = self.watcher = None
         self.files: dict[str, Path] = {}
+        self._gyro = False  # the localizer reads the gyro (checked against the board)
+        self.warm_up_s = 0.0  # how long compiling the kernels took before the devices
 
     def stop(self) -> None:
         self._stop_requested = True
@@ -379,8 +385,11 @@ class LiveRun:
     # -- running -----------------------------------------------------------------------
     def run(self) -> LiveResult:
         ctl_cfg = self._check_options()
+        self._warm_up()
         finished = False
         try:
+            if self.on_phase is not None:
+                self.on_phase("opening the devices")
             self._open_devices()
             self._build(ctl_cfg)
             record, on_command = self._outputs()
@@ -400,11 +409,28 @@ class LiveRun:
         CONTROLLERS.spec(opts.controller)
         self.mitigated = resolve(opts.mitigations, opts.localizer)
         check_calibration(self.mitigated, opts.calibration)
-        configure(LOCALIZERS, opts.localizer, None, self._localizer_settings())
+        self._gyro = uses_gyro(
+            configure(LOCALIZERS, opts.localizer, None, self._localizer_settings()).config
+        )
         if opts.sim is None and not opts.serial:
             raise LiveError("live needs --serial PORT (or --sim)")
         self.calibration_file = CalibrationOverride.load(opts.calibration)
         return configure(CONTROLLERS, opts.controller, None, opts.controller_overrides).config
+
+    def _warm_up(self) -> None:
+        """The numba kernels compiled before any device opens (experiments.warm_up)."""
+        opts = self.options
+        if self.on_phase is not None:
+            self.on_phase(f"warming up: {opts.localizer} and the map on the simulated course")
+        self.warm_up_s = warm_up(
+            opts.localizer,
+            opts.controller,
+            opts.localizer_overrides,
+            opts.controller_overrides,
+            opts.mitigations,
+            opts.loop,
+            self._gyro,
+        )
 
     def _localizer_settings(self) -> dict[str, Any]:
         """The mitigations' localizer fields, then --set."""
@@ -562,6 +588,7 @@ class LiveRun:
             files=self.files,
             pipeline=self.pipeline,
             sources=stats,
+            warm_up_s=self.warm_up_s,
         )
 
     def _ended_by(self) -> str:

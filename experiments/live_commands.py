@@ -260,7 +260,7 @@ def live(
         loop=replace(LIVE_LOOP, trigger=trigger, rate_hz=rate),
     )
     with _status_display(err_console, Live, Text) as show:
-        run = LiveRun(opts, on_status=lambda s: show(status_line(s)))
+        run = LiveRun(opts, on_status=lambda s: show(status_line(s)), on_phase=show)
         with _stop_on_signals(run.stop):
             res = run.run()
     _print_live_result(res)
@@ -291,7 +291,8 @@ def _print_live_result(res) -> None:
         f"p99 {lat['p99']:.1f} ms over {lat['frames']} frames; dropped "
         f"{sum(res.dropped.values())} frames; board: {res.board['ticks']} ticks, "
         f"{res.board['bad_lines']} bad lines, {res.board['seq_gaps']} sequence gaps, "
-        f"{res.board['resets']} resets, {res.board['reconnects']} reconnects",
+        f"{res.board['resets']} resets, {res.board['reconnects']} reconnects "
+        f"(warm-up before the devices opened: {res.warm_up_s:.1f} s)",
         highlight=False,
         soft_wrap=True,
     )

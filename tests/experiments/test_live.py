@@ -89,6 +89,14 @@ class Background:
         return self.result
 
 
+def first_difference(a: list, b: list) -> str:
+    """Where two lists part (instead of pytest's diff of two long lists, cut off)."""
+    pairs = zip(a, b, strict=False)
+    i = next((k for k, (x, y) in enumerate(pairs) if x != y), min(len(a), len(b)))
+    near = slice(max(i - 1, 0), i + 2)
+    return f"lengths {len(a)} and {len(b)}; at [{i}]: {a[near]} vs {b[near]}"
+
+
 def sim_options(tmp_path, **kw):
     base = {
         "localizer": "dead-reckoning",
@@ -142,9 +150,12 @@ def test_live_sim_records_and_replay_reproduces_the_live_run(tmp_path, board):
     rep_traj = rep.pipeline.localizer.trajectory()
     assert np.array_equal(live_traj.t, rep_traj.t)
     assert np.array_equal(live_traj.poses, rep_traj.poses)
-    live_cmds = [(c.t, c.left_nm, c.right_nm) for c in res.pipeline.recorded.commands]
-    rep_cmds = [(c.t, c.left_nm, c.right_nm) for c in rep.pipeline.recorded.commands]
-    assert live_cmds == rep_cmds and len(live_cmds) > 50
+    live_cmds = [(c.t, c.left_nm, c.right_nm, c.source) for c in res.pipeline.recorded.commands]
+    rep_cmds = [(c.t, c.left_nm, c.right_nm, c.source) for c in rep.pipeline.recorded.commands]
+    assert live_cmds == rep_cmds, first_difference(live_cmds, rep_cmds)
+    # every command the loop sent (how many it had time for is wall time), and the
+    # release at the end when the brakes were on
+    assert res.commands == sum(c[3] != "release" for c in live_cmds) > 0
     # scored against the simulator's truth like a simulated trial
     assert rep.metrics["ate_rmse_m"] < 0.5
     assert "out_of_order_dropped" not in rep.metrics
