@@ -186,6 +186,7 @@ from slam.motion import (
 )
 from slam.place_recognition import nearest_keys, ring_key
 from slam.scan_matching import (
+    Acceptance,
     MatchResult,
     Reference,
     Scan,
@@ -226,33 +227,24 @@ class OdometryCovariance(Choice):
 
 
 @dataclass(frozen=True)
-class MatchGate:
+class MatchGate(Acceptance):
     """How a scan match is searched for and accepted (module docstring): searched ±
     window_sigmas standard deviations of the prior (odometry, or the joint marginal for a
-    loop), clipped to window_xy_m and window_theta_rad (min, max); accepted when its
-    inlier fraction ≥ min_inlier_fraction, conflict fraction ≤ max_conflict_fraction and
-    ambiguity ≤ max_ambiguity (slam.scan_matching.MatchResult); its factor robust with
-    `robust` ("huber", "cauchy", "none") at robust_k. unknown_window (xy m, θ rad): the
-    search window instead when the odometry did not measure part of the motion since
-    the last kept scan (a gap: slam.motion.Increment.unknown); min_constraint: the least
-    `constraint` to accept (0: a corridor, its position along it unmeasured)."""
+    loop), clipped to window_xy_m and window_theta_rad (min, max); accepted at the
+    thresholds of slam.scan_matching.Acceptance; its factor robust with `robust`
+    ("huber", "cauchy", "none") at robust_k. unknown_window (xy m, θ rad): the search
+    window instead when the odometry did not measure part of the motion since the last
+    kept scan (a gap: slam.motion.Increment.unknown)."""
 
     window_sigmas: float = 3.0
     window_xy_m: tuple[float, float] = (0.1, 0.5)
     window_theta_rad: tuple[float, float] = (0.05, 0.35)
-    min_inlier_fraction: float = 0.3
-    max_conflict_fraction: float = 0.2
-    max_ambiguity: float = 0.9
     robust: RobustKernel = RobustKernel.HUBER
     robust_k: float = 1.345
     unknown_window: tuple[float, float] = (1.0, math.pi)
-    min_constraint: float = 0.0
 
     def __post_init__(self) -> None:
         coerce(self, robust=RobustKernel)
-
-    def accepts(self, res: MatchResult) -> bool:
-        return res.passes(self)
 
 
 @dataclass(frozen=True)

@@ -33,20 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hardware.geometry import compose, inverse, wrap_angle
-from slam.scan_matching import MatchResult
-
-
-@dataclass(frozen=True)
-class ConsensusGate:
-    """The looser gate a held match passes (slam.scan_matching.MatchResult.accepted)."""
-
-    min_inlier_fraction: float = 0.3
-    max_conflict_fraction: float = 0.1
-    max_ambiguity: float = 0.5
-    min_constraint: float = 0.1
-
-    def accepts(self, res: MatchResult) -> bool:
-        return res.passes(self)
+from slam.scan_matching import Acceptance, MatchResult
 
 
 @dataclass(frozen=True)
@@ -59,7 +46,15 @@ class LoopConsensus:
     agree_m: float = 0.15
     agree_rad: float = math.radians(2.0)
     window: int = 10
-    gate: ConsensusGate = field(default_factory=ConsensusGate)
+    # looser than the loop gate's 0.5 inliers, 0.1 conflict
+    gate: Acceptance = field(
+        default_factory=lambda: Acceptance(
+            min_inlier_fraction=0.3,
+            max_conflict_fraction=0.1,
+            max_ambiguity=0.5,
+            min_constraint=0.1,
+        )
+    )
 
     def __post_init__(self) -> None:
         if self.min_matches < 0 or self.min_scans < 1 or self.min_candidates < 1:

@@ -185,14 +185,25 @@ class MatchResult:
             and bool(np.all(np.isfinite(self.covariance)))
         )
 
-    def passes(self, gate) -> bool:
-        """`accepted` at a gate's thresholds: any object with min_inlier_fraction,
-        max_conflict_fraction, max_ambiguity and min_constraint."""
-        return self.accepted(
-            gate.min_inlier_fraction,
-            gate.max_conflict_fraction,
-            gate.max_ambiguity,
-            gate.min_constraint,
+
+@dataclass(frozen=True)
+class Acceptance:
+    """When a match is accepted (MatchResult.accepted): its inlier fraction at least
+    min_inlier_fraction, conflict fraction and ambiguity at most max_conflict_fraction
+    and max_ambiguity, `constraint` at least min_constraint (0: a corridor, its position
+    along it unmeasured). The thresholds of every gate a match passes."""
+
+    min_inlier_fraction: float = 0.3
+    max_conflict_fraction: float = 0.2
+    max_ambiguity: float = 0.9
+    min_constraint: float = 0.0
+
+    def accepts(self, res: MatchResult) -> bool:
+        return res.accepted(
+            self.min_inlier_fraction,
+            self.max_conflict_fraction,
+            self.max_ambiguity,
+            self.min_constraint,
         )
 
 
