@@ -251,6 +251,7 @@ class RouteFollower:
                 _route_curvature(bends),
             )
         )
+        self._curvature_at = (-1, 0.0)  # (progress, the bend ahead of it)
         self.walker = walker
         self.p = params
         self.rng = rng
@@ -279,8 +280,11 @@ class RouteFollower:
     def _curvature_ahead(self) -> float:
         """The sharpest bend of the route within preview_m ahead: they know the route and
         slow before its corners, not in them."""
-        n = round(self.p.preview_m / ROUTE_STEP_M)
-        return float(self._curvature[self._progress : self._progress + n + 1].max())
+        k = self._progress
+        if self._curvature_at[0] != k:  # (the progress moves every few physics steps)
+            n = round(self.p.preview_m / ROUTE_STEP_M)
+            self._curvature_at = (k, float(self._curvature[k : k + n + 1].max()))
+        return self._curvature_at[1]
 
     # -- belief -----------------------------------------------------------------------
     def _feel_motion(self, state: WalkerState, dt: float) -> None:
@@ -310,10 +314,11 @@ class RouteFollower:
             self._plan()
         if self.vision.sees_something():
             gain = min(dt / self.p.visual_fix_s, 1.0)
-            truth = np.array([state.x, state.y, state.phi])
-            err = truth - self.belief
-            err[2] = math.remainder(err[2], 2.0 * math.pi)
-            self.belief += gain * err
+            b = self.belief  # (per physics step: scalars, not small arrays)
+            bx, by, bphi = b.tolist()
+            b[0] = bx + gain * (state.x - bx)
+            b[1] = by + gain * (state.y - by)
+            b[2] = bphi + gain * math.remainder(state.phi - bphi, 2.0 * math.pi)
 
     def on_collision(self, state: WalkerState, point: np.ndarray) -> None:
         """Felt a collision at `point` (world): step back, swinging the front away from it."""
@@ -357,20 +362,31 @@ class RouteFollower:
             and math.dist(self.belief[:2], end) < self.p.finish_radius_m
         ):
             self.finished = True
-        i = min(self._progress + round(self.p.lookahead_m / ROUTE_STEP_M), len(self._dense) - 1)
-        point = self._dense[i]
+        dense = self._dense
+        i = min(self._progress + round(self.p.lookahead_m / ROUTE_STEP_M), len(dense) - 1)
+        px, py = dense[i].tolist()
         if self._offset:
-            j = min(i + 1, len(self._dense) - 1)
-            tangent = self._dense[j] - self._dense[max(j - 1, 0)]
-            tangent = tangent / max(float(np.hypot(*tangent)), 1e-12)
-            point = point + self._offset * np.array([-tangent[1], tangent[0]])
-        return self._to_walker(point[None, :])[0], remaining
+            j = min(i + 1, len(dense) - 1)
+            (x1, y1), (x0, y0) = dense[j].tolist(), dense[max(j - 1, 0)].tolist()
+            tx, ty = x1 - x0, y1 - y0
+            norm = max(float(np.hypot(tx, ty)), 1e-12)
+            tx, ty = tx / norm, ty / norm
+            px, py = px + self._offset * -ty, py + self._offset * tx
+        return self._point_to_walker(px, py), remaining
 
     def _to_walker(self, xy: np.ndarray) -> np.ndarray:
         """World points in the walker frame as the user believes it."""
         c, s = math.cos(self.belief[2]), math.sin(self.belief[2])
         rel = xy - self.belief[:2]
         return np.column_stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]])
+
+    def _point_to_walker(self, x: float, y: float) -> tuple[float, float]:
+        """One world point in the walker frame as the user believes it (as _to_walker,
+        the same arithmetic, without the arrays: it runs every physics step)."""
+        bx, by, bphi = self.belief.tolist()
+        c, s = math.cos(bphi), math.sin(bphi)
+        rx, ry = x - bx, y - by
+        return (c * rx + s * ry, -s * rx + c * ry)
 
     def _plan(self) -> None:
         """After a glimpse: the offset across the route to walk at and the free distance

@@ -169,16 +169,20 @@ class GogglesVision:
         if len(self._points) == 0:
             return
         c, s = math.cos(dphi), math.sin(dphi)
-        x = self._points[:, 0] - ds
-        y = self._points[:, 1]
-        self._points = np.column_stack([c * x + s * y, -s * x + c * y])
+        p = self._points
+        x = p[:, 0] - ds
+        y = p[:, 1]  # (column 1 is written last, from temporaries)
+        np.add(c * x, s * y, out=p[:, 0])
+        np.add(-s * x, c * y, out=p[:, 1])
 
     def step(self, t: float, pose: tuple[float, float, float]) -> bool:
         """Take a glimpse from the true pose when one is due; forget what is too old.
         Returns whether a glimpse was taken."""
         self._t = t
-        keep = self._seen_t >= t - self.p.memory_s
-        self._points, self._seen_t = self._points[keep], self._seen_t[keep]
+        # seen in time order: only when the oldest is too old is there anything to forget
+        if len(self._seen_t) and self._seen_t[0] < t - self.p.memory_s:
+            keep = self._seen_t >= t - self.p.memory_s
+            self._points, self._seen_t = self._points[keep], self._seen_t[keep]
         if t + 1e-9 < self._next_glimpse:
             return False
         self._next_glimpse = t + self.p.period_s
@@ -204,7 +208,8 @@ class GogglesVision:
     def sees_something(self) -> bool:
         """Whether anything was seen in the last glimpse period (for the user's sense of
         where they are on the route)."""
-        return bool(len(self._seen_t)) and float(self._seen_t.max()) >= self._t - self.p.period_s
+        # (seen in time order: the last is the latest)
+        return bool(len(self._seen_t)) and float(self._seen_t[-1]) >= self._t - self.p.period_s
 
 
 def route_coordinates(
