@@ -70,8 +70,10 @@ def _wheel_cov(var_left: float, var_right: float, track: float) -> np.ndarray:
     )
 
 
-def sinc_and_derivative(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """S(u) = sin(u)/u and S'(u), stable near 0."""
+def sinc_and_derivative(u: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+    """S(u) = sin(u)/u and S'(u), stable near 0 (for one float: two floats)."""
+    if isinstance(u, float):
+        return _sinc_and_derivative(u)
     u = np.asarray(u, dtype=float)
     small = np.abs(u) < 1e-4
     safe = np.where(small, 1.0, u)
@@ -80,10 +82,26 @@ def sinc_and_derivative(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return s, ds
 
 
+def _sinc_and_derivative(u: float) -> tuple[float, float]:
+    """sinc_and_derivative of one float: the same operations on floats (math's sin and
+    cos give numpy's bits here: tests/slam/test_motion.py), without the arrays."""
+    if abs(u) < 1e-4:
+        return 1.0 - u * u / 6.0, -u / 3.0
+    sin_u = math.sin(u)
+    return sin_u / u, (u * math.cos(u) - sin_u) / (u * u)
+
+
 def apply_increment(
     poses: np.ndarray, ds: np.ndarray | float, dtheta: np.ndarray | float
 ) -> np.ndarray:
     """Move poses (..., 3) along exact arcs (ds, dθ) (broadcast, e.g. per particle)."""
+    if (
+        isinstance(ds, float)
+        and isinstance(dtheta, float)
+        and isinstance(poses, np.ndarray)
+        and poses.shape == (3,)
+    ):
+        return _apply_one(poses, ds, dtheta)
     poses = np.asarray(poses, dtype=float)
     ds = np.asarray(ds, dtype=float)
     half = 0.5 * np.asarray(dtheta, dtype=float)
@@ -97,10 +115,28 @@ def apply_increment(
     return out
 
 
+def _apply_one(pose: np.ndarray, ds: float, dtheta: float) -> np.ndarray:
+    """apply_increment of one pose (the odometry of a smoother or filter, every message):
+    the same operations in the same order on floats."""
+    x, y, th = (float(v) for v in pose)
+    half = 0.5 * dtheta
+    s, _ = _sinc_and_derivative(half)
+    chord = ds * s
+    h = th + half
+    two_pi = 2 * math.pi
+    return np.array(
+        [
+            x + chord * math.cos(h),
+            y + chord * math.sin(h),
+            (th + 2 * half + math.pi) % two_pi - math.pi,
+        ]
+    )
+
+
 def increment_jacobians(theta: float, ds: float, dtheta: float) -> tuple[np.ndarray, np.ndarray]:
     """F = ∂pose'/∂pose (3×3) and G = ∂pose'/∂(ds, dθ) (3×2) of the exact arc."""
-    half = 0.5 * dtheta
-    s, s_prime = (float(v) for v in sinc_and_derivative(half))
+    half = 0.5 * float(dtheta)
+    s, s_prime = _sinc_and_derivative(half)
     chord = ds * s
     dchord = 0.5 * ds * s_prime  # ∂chord/∂dθ
     h = theta + half
