@@ -27,12 +27,21 @@ def test_a_simulated_trial_proposes_its_encoders_noise(tmp_path):
     assert config["localizer_config"]["noise"]["wheel_m"] == dusty
 
 
+@pytest.fixture(scope="module")
+def dead_reckoning_phantom(course_trial, tmp_path_factory):
+    """Dead reckoning's phantom area on the trial (the baseline of every localizer)."""
+    out = tmp_path_factory.mktemp("dr")
+    return replay_log(course_trial, out, figures=False).metrics["phantom_area_m2"]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("localizer", "cut"),
     [("ekf-slam", 0.8), ("fastslam", 0.4), ("gtsam", 0.8), ("particle-filter", 0.8)],
 )
-def test_tag_localizers_cut_the_phantom_area(course_trial, tmp_path, localizer, cut):
+def test_tag_localizers_cut_the_phantom_area(
+    course_trial, dead_reckoning_phantom, tmp_path, localizer, cut
+):
     """thesis-course, dusty, open-loop braking (seed 2), at defaults with the trial's
     proposed settings. Measured with the goggle-wearing users (2026-12-02): dead reckoning
     6.89 m², ekf-slam 0.62 (−91 %), gtsam 0.99 (−86 %), particle filter (known tag map,
@@ -40,7 +49,7 @@ def test_tag_localizers_cut_the_phantom_area(course_trial, tmp_path, localizer, 
     −80 % for every tag-using localizer held with the earlier users; with these, who turn
     faster and sharper, FastSLAM falls short on this trial (and −71…−96 % on seeds 0, 1
     and 3), so its bound here is −40 %."""
-    dr = replay_log(course_trial, tmp_path / "dr", figures=False).metrics["phantom_area_m2"]
+    dr = dead_reckoning_phantom
     est = replay_log(course_trial, tmp_path / localizer, localizer=localizer, figures=False)
     assert dr > 5.0  # the trial drags obstacles: there is something to cut
     assert est.metrics["phantom_area_m2"] <= (1.0 - cut) * dr
