@@ -5,11 +5,18 @@ numpy's `@`, `np.dot` and `np.linalg` run OpenBLAS, which picks its kernels by C
 CPU with AVX-512 the SkylakeX ones, elsewhere Haswell's or Zen's): they sum in other
 orders and round the last bits differently. On a laser log that is enough for the scan
 matcher to accept or reject a match differently and end somewhere else (csail: ATE
-0.126 m with one kernel choice, 0.163 m with another; BENCHMARKS.md). numpy's own
-element-wise functions and reductions give the same bits either way, and so do its
-`einsum` loops (without `optimize`, which would hand them to BLAS) and the closed forms
-here; the scan path (slam.scan_matching, slam.gtsam_smoother's covariances, the CARMEN
-importer's odometry fit) uses these instead of `@` and np.linalg.
+0.126 m with one kernel choice, 0.163 m with another; BENCHMARKS.md). The closed forms
+here give the same bits on any CPU. `einsum`'s sums of up to three terms (without
+`optimize`, which would hand them to BLAS), the products of 3×3 and smaller matrices,
+should too on x86: worked through for 2-, 4- and 8-lane vectors they add the same
+rounded products in the same order (measured on this AVX2 machine only). A long
+`einsum` reduction (`gram` over a scan's points) does not quite:
+numpy accumulates it in SIMD vectors of the CPU's width (2, 4 or 8 doubles, with FMA
+where there is one; numpy's einsum_sumprod.c.src) and adds the lanes at the end, so a
+CPU with another vector width can round its last bits differently. Note the order is not
+the written one either: on this AVX2 machine a 3-term sum over a transposed operand is
+(p0 + p2) + p1. The scan path (slam.scan_matching, slam.gtsam_smoother's covariances, the
+CARMEN importer's odometry fit) uses these instead of `@` and np.linalg.
 """
 
 from __future__ import annotations
