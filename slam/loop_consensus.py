@@ -46,7 +46,8 @@ class LoopConsensus:
     agree_m: float = 0.15
     agree_rad: float = math.radians(2.0)
     window: int = 10
-    # looser than the loop gate's 0.5 inliers, 0.1 conflict
+    # looser than the loop gate on inliers (0.3 against 0.5), stricter on ambiguity
+    # (0.5 against 0.9) and on how well the match pins the position (0.1 against 0)
     gate: Acceptance = field(
         default_factory=lambda: Acceptance(
             min_inlier_fraction=0.3,

@@ -161,7 +161,8 @@ class GogglesVision:
 
     @property
     def points(self) -> np.ndarray:
-        """What the user remembers seeing, in the walker frame."""
+        """What the user remembers seeing, in the walker frame (moved in place by
+        `carry`: copy it to keep a snapshot)."""
         return self._points
 
     def carry(self, ds: float, dphi: float) -> None:
