@@ -34,11 +34,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from hardware.geometry import rotation, wrap_angle
 from hardware.messages import CompassHeading, Message, PositionFix
-from slam.measurement import robust_log_likelihood
+from slam.measurement import chi2_quantile, robust_log_likelihood
 
 
 @dataclass(frozen=True)
@@ -80,7 +79,7 @@ class AbsoluteConfig:
 
     def gate(self, dof: int) -> float:
         """The squared-Mahalanobis threshold for an innovation of `dof` dimensions."""
-        return math.inf if self.gate_prob >= 1.0 else float(chi2.ppf(self.gate_prob, dof))
+        return math.inf if self.gate_prob >= 1.0 else chi2_quantile(self.gate_prob, dof)
 
 
 @dataclass(frozen=True, eq=False)

@@ -48,10 +48,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from hardware.choices import Choice, coerce
 from slam.kernel_math import greedy_pairs
+from slam.measurement import chi2_quantile
 
 FIRST_ASSOCIATED_ID = 1_000_000
 
@@ -97,24 +97,15 @@ class AssociationConfig:
 
     def gate(self, dof: int = 2) -> float:
         """The squared-Mahalanobis threshold for `dof` stacked dimensions."""
-        return _quantile(self.gate_prob, dof)
+        return chi2_quantile(self.gate_prob, dof)
 
     def new_threshold(self) -> float:
-        return _quantile(self.new_prob, 2)
+        return chi2_quantile(self.new_prob, 2)
 
 
-_QUANTILES: dict[tuple[float, int], float] = {}
-
-# 99.9 % quantiles of χ² with 2 and 3 degrees of freedom (scipy.stats.chi2.ppf(0.999, k)):
+# 99.9 % quantiles of χ² with 2 and 3 degrees of freedom (chi2_quantile(0.999, k)):
 # the known-ID sighting gates of FastSLAM and gtsam.
 CHI2_999 = {2: 13.815510557964274, 3: 16.26623619623813}
-
-
-def _quantile(p: float, dof: int) -> float:
-    key = (p, dof)
-    if key not in _QUANTILES:
-        _QUANTILES[key] = float(chi2.ppf(p, dof))
-    return _QUANTILES[key]
 
 
 def mahalanobis2(nu: np.ndarray, s: np.ndarray) -> np.ndarray:

@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache, lru_cache
 
 import numpy as np
+from scipy.special import gammaincinv
 
 from hardware.calibration import Mount, WalkerCalibration
 from hardware.choices import Choice
@@ -28,6 +29,17 @@ from hardware.messages import (
     RangeBearings,
     TagDetections,
 )
+
+
+@cache
+def chi2_quantile(p: float, dof: int) -> float:
+    """The p quantile of χ² with `dof` degrees of freedom: a squared-Mahalanobis gate.
+
+    scipy.stats.chi2.ppf's own formula (2·P⁻¹(dof/2, p), P the regularised lower
+    incomplete gamma function), the same bits, without importing scipy.stats (1–2 s,
+    paid by every command-line call that loads a localizer)."""
+    return float(2.0 * gammaincinv(dof / 2.0, p))
+
 
 # Default landmark noise of the localizers: range σ = RANGE_SIGMA_M + RANGE_SIGMA_FRAC·r,
 # bearing σ = BEARING_SIGMA_RAD. They describe an AprilTag camera (the walker's tag

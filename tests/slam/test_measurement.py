@@ -13,6 +13,7 @@ from hardware.sim.tag_camera import SimTagCamera, TagCameraConfig
 from hardware.sim.world import load_world
 from slam.measurement import (
     Sightings,
+    chi2_quantile,
     landmark_from_range_bearing,
     landmark_from_range_bearing_jacobians,
     range_bearing,
@@ -117,3 +118,14 @@ def test_sightings_of_one_time_come_out_together_in_order():
     obs = buf.take()
     assert obs.ids.tolist() == [1, 2] and np.allclose(obs.z, [[1.0, 0.0], [2.0, 0.1]])
     assert not buf and math.isnan(buf.t)
+
+
+def test_chi2_quantile_is_scipy_stats_to_the_bit():
+    from scipy.stats import chi2
+
+    from slam.association import CHI2_999
+
+    for p in (0.5, 0.9, 0.95, 0.99, 0.999, 0.9999):
+        for dof in (1, 2, 3, 4, 6):
+            assert chi2_quantile(p, dof) == float(chi2.ppf(p, dof)), (p, dof)
+    assert CHI2_999 == {k: chi2_quantile(0.999, k) for k in (2, 3)}
