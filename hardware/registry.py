@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from importlib.metadata import entry_points
+from importlib.metadata import EntryPoint, entry_points
 from typing import Any, Generic, TypeVar
 
 from hardware.errors import UnknownNameError
@@ -42,12 +42,14 @@ class Spec(Generic[T]):
 
 
 class Registry(Generic[T]):
-    """The members of entry-point group `group`, loaded on first use."""
+    """The members of entry-point group `group`. Their names come from the entry points'
+    declarations; a member's module is imported when that member is first asked for, so
+    naming one localizer does not import every other (gtsam, SciPy's image and tree code)."""
 
     def __init__(self, kind: str, group: str) -> None:
         self.kind = kind
         self.group = group
-        self._loaded = False
+        self._declared: dict[str, EntryPoint] | None = None
         self._specs: dict[str, Spec[T]] = {}
 
     def register(self, name: str, config_type: type | None, summary: str):
@@ -59,27 +61,29 @@ class Registry(Generic[T]):
 
         return deco
 
-    def _load(self) -> None:
-        if self._loaded:
-            return
-        self._loaded = True
-        for ep in entry_points(group=self.group):
+    def _entry_points(self) -> dict[str, EntryPoint]:
+        """The group's entry points by name (the first one declared of a name)."""
+        if self._declared is None:
+            self._declared = {}
+            for ep in entry_points(group=self.group):
+                self._declared.setdefault(ep.name, ep)
+        return self._declared
+
+    def names(self) -> list[str]:
+        return sorted(set(self._specs) | set(self._entry_points()))
+
+    def spec(self, name: str) -> Spec[T]:
+        if name not in self._specs:
+            ep = self._entry_points().get(name)
+            if ep is None:
+                raise UnknownNameError(self.kind, name, self.names())
             spec = ep.load()
             if not isinstance(spec, Spec) or spec.name != ep.name:
                 raise TypeError(
                     f"entry point {ep.name} = {ep.value} in {self.group} must name a "
                     f"Spec called {ep.name!r}, got {spec!r}"
                 )
-            self._specs.setdefault(spec.name, spec)
-
-    def names(self) -> list[str]:
-        self._load()
-        return sorted(self._specs)
-
-    def spec(self, name: str) -> Spec[T]:
-        self._load()
-        if name not in self._specs:
-            raise UnknownNameError(self.kind, name, sorted(self._specs))
+            self._specs[name] = spec
         return self._specs[name]
 
     def create(self, name: str, *args: Any, config: Any = None) -> T:
