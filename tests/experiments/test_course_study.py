@@ -167,21 +167,23 @@ def test_bad_input_is_one_line(tmp_path):
 
 @pytest.mark.slow
 def test_ray_engine_gives_the_same_results_as_local(tiny_study, tmp_path):
+    """One cell of the tiny study (open-loop: its two users) on Ray: the same rows as the
+    local pool's for that cell (a run's numbers depend on its cell and trial only)."""
     ray = pytest.importorskip("ray")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         study = CourseStudy(
-            controllers=("none", "open-loop"), trials=2, duration_s=12.0, seed=5, keep_logs=False
+            controllers=("open-loop",), trials=2, duration_s=12.0, seed=5, keep_logs=False
         )
         res = run_course_study(study, tmp_path, engine="ray", workers=2)
     finally:
         ray.shutdown()
-    local, _ = db_rows(tiny_study[0] / "results.db")
     remote, _ = db_rows(tmp_path / "results.db")
-    assert len(remote) == len(local) == len(res.rows) == 4
+    local = [r for r in db_rows(tiny_study[0] / "results.db")[0] if r["cell"] == remote[0]["cell"]]
+    assert len(remote) == len(local) == len(res.rows) == 2
+    assert [r["controller"] for r in remote] == ["open-loop", "open-loop"]
     skip = {"id", "wall_time_s", "log", "config"}
     for a, b in zip(local, remote, strict=True):
         assert {k: v for k, v in a.items() if k not in skip} == {
             k: v for k, v in b.items() if k not in skip
         }
-    assert (tmp_path / "table.md").read_text() == (tiny_study[0] / "table.md").read_text()

@@ -121,12 +121,14 @@ def test_bad_input_is_one_line(tmp_path):
 
 @pytest.mark.slow
 def test_ray_engine_gives_the_same_results_as_local(tiny_study, tmp_path):
+    """One cell of the tiny study (dusty, gyro: its two users) on Ray: the same rows as
+    the local pool's for that cell (a run's numbers depend on its cell and trial only)."""
     ray = pytest.importorskip("ray")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         study = SlipStudy(
-            surfaces=("clean", "dusty"),
-            mitigations=((), ("gyro",)),
+            surfaces=("dusty",),
+            mitigations=(("gyro",),),
             trials=2,
             duration_s=20.0,
             seed=7,
@@ -135,9 +137,11 @@ def test_ray_engine_gives_the_same_results_as_local(tiny_study, tmp_path):
         run_slip_study(study, tmp_path, engine="ray", workers=2)
     finally:
         ray.shutdown()
-    local, remote = db_rows(tiny_study[0] / "results.db"), db_rows(tmp_path / "results.db")
+    remote = db_rows(tmp_path / "results.db")
+    local = [r for r in db_rows(tiny_study[0] / "results.db") if r["cell"] == remote[0]["cell"]]
     skip = {"id", "wall_time_s", "replay_realtime_factor", "log", "config"}
-    assert len(local) == len(remote) == 8
+    assert len(local) == len(remote) == 2
+    assert [r["mitigation"] for r in remote] == ["gyro", "gyro"]
     for a, b in zip(local, remote, strict=True):
         assert {k: v for k, v in a.items() if k not in skip} == {
             k: v for k, v in b.items() if k not in skip
