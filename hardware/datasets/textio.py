@@ -84,6 +84,23 @@ def iter_lines(path: Path) -> Iterator[tuple[int, str]]:
             ) from None
 
 
+def read_lines(path: Path) -> list[str]:
+    """The lines of a plain or gzipped text file without their ends: iter_lines' lines,
+    read in one piece. A file iter_lines would fail on is read by it, for its error."""
+    try:
+        with path.open("rb") as raw:
+            magic = raw.read(2)
+            raw.seek(0)
+            stream = gzip.GzipFile(fileobj=raw) if magic == GZIP_MAGIC else raw
+            text = io.TextIOWrapper(stream, encoding="utf-8-sig", newline=None).read()
+    except (OSError, EOFError, zlib.error, UnicodeDecodeError):  # BadGzipFile is an OSError
+        return [line for _, line in iter_lines(path)]  # raises the one-line error
+    lines = text.split("\n")
+    if lines[-1] == "":
+        lines.pop()  # the end of the last line, or an empty file
+    return lines
+
+
 @dataclass(frozen=True, eq=False)
 class Table:
     """A numeric table read from `path`: data (rows × columns) and each row's line number."""
@@ -122,30 +139,51 @@ def read_table(
     Fields are separated by whitespace (delimiter None) or by `delimiter` (surrounding
     spaces ignored, trailing empty fields dropped). Every row must have exactly
     `columns` finite numbers.
+
+    The data lines are parsed in one compiled pass (numpy's loadtxt, which reads a
+    number as Python's float does: the same bits); only when that pass fails are they
+    parsed line by line, to name the first bad line.
     """
-    rows: list[list[float]] = []
-    linenos: list[int] = []
-    for lineno, line in iter_lines(path):
-        if lineno <= skip_header:
-            continue
-        s = line.strip()
-        if not s or s.startswith(comments):
-            continue
-        if delimiter is None:
-            parts = s.split()
-        else:
-            parts = [p.strip() for p in s.split(delimiter)]
-            while parts and parts[-1] == "":
-                parts.pop()
-        if len(parts) != columns:
-            raise DatasetError(
-                f"{path}: line {lineno}: expected {columns} columns, got {len(parts)}"
-            )
-        rows.append(parse_floats(path, lineno, parts))
-        linenos.append(lineno)
-    if not rows:
+    numbered = [
+        (lineno, s)
+        for lineno, line in enumerate(read_lines(path)[skip_header:], skip_header + 1)
+        if (s := line.strip()) and not s.startswith(comments)
+    ]
+    if not numbered:
         raise DatasetError(f"{path}: no data rows")
-    return Table(path, np.array(rows, dtype=np.float64), np.array(linenos, dtype=np.int64))
+    linenos = np.array([n for n, _ in numbered], dtype=np.int64)
+    data = _parse_block([s for _, s in numbered], columns, delimiter)
+    if data is None:
+        data = np.array(
+            [parse_floats(path, n, _fields(path, n, s, columns, delimiter)) for n, s in numbered],
+            dtype=np.float64,
+        )
+    return Table(path, data, linenos)
+
+
+def _parse_block(lines: list[str], columns: int, delimiter: str | None) -> np.ndarray | None:
+    """The lines as a (rows × columns) array of finite numbers, or None if any line is
+    not `columns` numbers (the caller then finds which)."""
+    try:
+        data = np.loadtxt(lines, dtype=np.float64, delimiter=delimiter, comments=None, ndmin=2)
+    except ValueError:
+        return None
+    if data.shape != (len(lines), columns) or not np.isfinite(data).all():
+        return None
+    return data
+
+
+def _fields(path: Path, lineno: int, s: str, columns: int, delimiter: str | None) -> list[str]:
+    """The fields of one stripped data line; a DatasetError if they are not `columns`."""
+    if delimiter is None:
+        parts = s.split()
+    else:
+        parts = [p.strip() for p in s.split(delimiter)]
+        while parts and parts[-1] == "":
+            parts.pop()
+    if len(parts) != columns:
+        raise DatasetError(f"{path}: line {lineno}: expected {columns} columns, got {len(parts)}")
+    return parts
 
 
 def parse_floats(path: Path, lineno: int, parts: list[str]) -> list[float]:

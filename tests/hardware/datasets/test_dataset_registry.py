@@ -153,3 +153,17 @@ def test_import_dataset_opens_and_writes(tmp_path):
     summary = import_dataset("victoria-park", folder, tmp_path / "vp.mcap")
     assert summary.counts == {"VelocityOdometry": 5, "RangeBearing": 3}
     assert read_log(tmp_path / "vp.mcap").metadata["config"]["format"] == "victoria-park"
+
+
+def test_read_table_reads_a_number_as_python_does_in_every_form(tmp_path):
+    """The compiled pass and the line-by-line one agree: spaces around delimiters, a
+    trailing delimiter (dropped), underscores and exponents, bits as float() gives."""
+    rows = ["0.1 , 2.5e-3 ,", " 3,1_0", "-0.30000000000000004,7.000000000000001e+300"]
+    p = write_text(tmp_path / "t.csv", "\n".join(rows) + "\n")
+    t = read_table(p, 2, delimiter=",")
+    want = [[float(v) for v in r.split(",") if v.strip()] for r in rows]
+    assert t.data.tobytes() == np.array(want).tobytes()
+    assert t.lines.tolist() == [1, 2, 3]
+    q = write_text(tmp_path / "t.dat", "\ufeff1 2\r\n\r\n# note\r\n0.1 1e-5\n")
+    t = read_table(q, 2)
+    assert t.data.tolist() == [[1.0, 2.0], [0.1, 1e-5]] and t.lines.tolist() == [1, 4]
