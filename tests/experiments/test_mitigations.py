@@ -1,8 +1,6 @@
 """Mitigations by name: what they set, where they apply, what they need, end to end."""
 
 import json
-import subprocess
-import sys
 
 import pytest
 
@@ -22,6 +20,7 @@ from hardware.messages import DepthFrame, EncoderTicks, GyroRate
 from hardware.sim.gyro import GyroSimConfig
 from hardware.sim.simulator import SimConfig
 from slam.base import LOCALIZERS
+from tests.experiments.test_cli import walkerslam
 
 NAMES = (
     "absolute-fix",
@@ -127,22 +126,14 @@ def test_replay_applies_mitigations_and_records_them(gyro_trial, tmp_path) -> No
 
 
 def test_the_cli_says_in_one_line_why_a_mitigation_cannot_run(gyro_trial, tmp_path) -> None:
-    def run(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run(
-            [sys.executable, "-m", "experiments", *args],
-            capture_output=True,
-            text=True,
-            check=False,
-        )
-
     out = str(tmp_path / "o")
-    wrong = run("replay", str(gyro_trial), "--mitigation", "absolute-fix", "--out", out)
+    wrong = walkerslam("replay", str(gyro_trial), "--mitigation", "absolute-fix", "--out", out)
     assert wrong.returncode == 2
     assert [ln for ln in wrong.stderr.splitlines() if ln.strip()] == [
         "error: mitigation 'absolute-fix' does not apply to localizer 'dead-reckoning'; it "
         "applies to: alpha-blend, ekf-slam, gtsam, particle-filter"
     ]
-    lacking = run(
+    lacking = walkerslam(
         "replay",
         str(gyro_trial),
         "--localizer",
@@ -154,5 +145,5 @@ def test_the_cli_says_in_one_line_why_a_mitigation_cannot_run(gyro_trial, tmp_pa
     )
     assert lacking.returncode == 2
     assert "needs CompassHeading or PositionFix messages; it has none" in lacking.stderr
-    listed = run("list", "mitigations")
+    listed = walkerslam("list", "mitigations")
     assert listed.returncode == 0 and all(n in listed.stdout for n in NAMES)

@@ -3,8 +3,6 @@ trial. With the controller and localizer the trial was recorded with, the replay
 the messages in the order the closed loop did, so the commands come out the same."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -13,18 +11,9 @@ from experiments.run import replay_log, simulate_trial
 from hardware.calibration import WalkerCalibration
 from hardware.log import LogWriter
 from hardware.messages import EncoderTicks
+from tests.experiments.test_cli import walkerslam
 
 OFF = WalkerCalibration().brake.torque_off_nm
-
-
-def walkerslam(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "experiments", *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        check=False,
-    )
 
 
 @pytest.fixture(scope="module")
