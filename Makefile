@@ -46,7 +46,7 @@ demo: install
 	$(VENV)/bin/walkerslam demo --out out/demo
 
 test: install-live firmware
-	$(PY) -m pytest -q -n auto
+	$(PY) -m pytest -q -n auto --durations=25
 
 test-fast: install-live firmware
 	$(PY) -m pytest -q -n auto -m "not slow"
