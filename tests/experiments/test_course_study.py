@@ -31,9 +31,10 @@ def db_rows(path):
 
 @pytest.fixture(scope="module")
 def tiny_study(tmp_path_factory):
-    """2 users × none/open-loop × dusty, 12 s each, on two local worker processes."""
+    """2 users × none/open-loop × dusty, 12 s each, in this process (the local
+    process pool: test_corner_study)."""
     out = tmp_path_factory.mktemp("course-study")
-    res = CliRunner().invoke(app, ["course-study", *TINY, "--workers", "2", "--out", str(out)])
+    res = CliRunner().invoke(app, ["course-study", *TINY, "--workers", "1", "--out", str(out)])
     assert res.exit_code == 0, res.output
     return out, res.output
 
@@ -168,7 +169,7 @@ def test_bad_input_is_one_line(tmp_path):
 @pytest.mark.slow
 def test_ray_engine_gives_the_same_results_as_local(tiny_study, tmp_path):
     """One cell of the tiny study (open-loop: its two users) on Ray: the same rows as the
-    local pool's for that cell (a run's numbers depend on its cell and trial only)."""
+    in-process run's for that cell (a run's numbers depend on its cell and trial only)."""
     ray = pytest.importorskip("ray")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:

@@ -1,6 +1,6 @@
 """`walkerslam slip-study` on a tiny study: every run stored with its metrics, the
 paired ranking against none (on hand-made rows too), figures, one-line errors, and the
-same numbers from the local pool and from Ray."""
+same numbers in this process and from Ray (the local process pool: test_corner_study)."""
 
 import math
 import sqlite3
@@ -40,7 +40,7 @@ def tiny_study(tmp_path_factory):
     """2 users × clean/dusty × none/gyro, dead reckoning, open-loop braking, 20 s each."""
     out = tmp_path_factory.mktemp("slip-study")
     res = CliRunner().invoke(
-        app, ["slip-study", *TINY, "--workers", "2", "--no-logs", "--out", str(out)]
+        app, ["slip-study", *TINY, "--workers", "1", "--no-logs", "--out", str(out)]
     )
     assert res.exit_code == 0, res.output
     return out, res.output
@@ -122,7 +122,7 @@ def test_bad_input_is_one_line(tmp_path):
 @pytest.mark.slow
 def test_ray_engine_gives_the_same_results_as_local(tiny_study, tmp_path):
     """One cell of the tiny study (dusty, gyro: its two users) on Ray: the same rows as
-    the local pool's for that cell (a run's numbers depend on its cell and trial only)."""
+    the in-process run's for that cell (a run's numbers depend on its cell and trial only)."""
     ray = pytest.importorskip("ray")
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
