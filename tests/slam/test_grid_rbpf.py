@@ -273,11 +273,9 @@ def test_maps_past_their_memory_budget_stop_the_run_with_a_clear_error(tmp_path)
     """The particles' maps are counted once per shared map; past `map_memory_gb` the run
     stops with a ConfigError naming the remedies (a laser log's 60 maps had taken 24 GB
     and the kernel killed the process), and from the CLI it is one line, exit 2."""
-    import subprocess
-    import sys
-
     from hardware.errors import ConfigError
     from hardware.log import LogWriter
+    from tests.experiments.test_cli import walkerslam
 
     msgs, truth = loop_messages(laps=1)
     start = tuple(truth.poses[0])
@@ -291,10 +289,9 @@ def test_maps_past_their_memory_budget_stop_the_run_with_a_clear_error(tmp_path)
     with LogWriter(log, WalkerCalibration()) as w:
         for m in msgs:
             w.write(m)
-    res = subprocess.run(
-        [sys.executable, "-m", "experiments", "replay", str(log), "--localizer", "grid-rbpf",
-         "--set", "grid-rbpf.map_memory_gb=0.0001", "--out", str(tmp_path / "out")],
-        capture_output=True, text=True, timeout=600, check=False,
+    res = walkerslam(
+        "replay", log, "--localizer", "grid-rbpf", "--set", "grid-rbpf.map_memory_gb=0.0001",
+        "--out", tmp_path / "out",
     )  # fmt: skip
     lines = [ln for ln in res.stderr.splitlines() if ln.strip() and "note:" not in ln]
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
