@@ -103,9 +103,9 @@ class AssociationConfig:
         return chi2_quantile(self.new_prob, 2)
 
 
-# 99.9 % quantiles of χ² with 2 and 3 degrees of freedom (chi2_quantile(0.999, k)):
-# the known-ID sighting gates of FastSLAM and gtsam.
-CHI2_999 = {2: 13.815510557964274, 3: 16.26623619623813}
+# 99.9 % quantiles of χ² with 2 and 3 degrees of freedom: the known-ID sighting gates
+# of FastSLAM and gtsam.
+CHI2_999 = {dof: chi2_quantile(0.999, dof) for dof in (2, 3)}
 
 
 def mahalanobis2(nu: np.ndarray, s: np.ndarray) -> np.ndarray:

@@ -54,6 +54,14 @@ class FolderFiles:
         return find_optional(self.folder, name) is not None
 
 
+def _text(raw: io.BufferedReader) -> io.TextIOWrapper:
+    """The text of an open binary file, gunzipped when its first bytes say gzip."""
+    magic = raw.read(2)
+    raw.seek(0)
+    stream = gzip.GzipFile(fileobj=raw) if magic == GZIP_MAGIC else raw
+    return io.TextIOWrapper(stream, encoding="utf-8-sig", newline=None)
+
+
 def iter_lines(path: Path) -> Iterator[tuple[int, str]]:
     """(line number from 1, line without its end) of a plain or gzipped text file."""
     try:
@@ -66,10 +74,7 @@ def iter_lines(path: Path) -> Iterator[tuple[int, str]]:
         raise DatasetError(f"{path}: cannot open ({e.strerror})") from None
     lineno = 0
     with raw:
-        magic = raw.read(2)
-        raw.seek(0)
-        stream = gzip.GzipFile(fileobj=raw) if magic == GZIP_MAGIC else raw
-        text = io.TextIOWrapper(stream, encoding="utf-8-sig", newline=None)
+        text = _text(raw)
         try:
             for lineno, line in enumerate(text, 1):
                 yield lineno, line.rstrip("\n")
@@ -89,10 +94,7 @@ def read_lines(path: Path) -> list[str]:
     read in one piece. A file iter_lines would fail on is read by it, for its error."""
     try:
         with path.open("rb") as raw:
-            magic = raw.read(2)
-            raw.seek(0)
-            stream = gzip.GzipFile(fileobj=raw) if magic == GZIP_MAGIC else raw
-            text = io.TextIOWrapper(stream, encoding="utf-8-sig", newline=None).read()
+            text = _text(raw).read()
     except (OSError, EOFError, zlib.error, UnicodeDecodeError):  # BadGzipFile is an OSError
         return [line for _, line in iter_lines(path)]  # raises the one-line error
     lines = text.split("\n")

@@ -201,8 +201,8 @@ def test_the_cli_command_calibrates_from_a_folder_and_writes_the_yaml(views, tmp
     cam = load_camera_yaml(out)
     assert abs(cam.camera_matrix[0, 0] / TRUE.camera_matrix[0, 0] - 1) < 0.002
     assert cam.tag_size_m == 0.165
-    # bad input: one line naming what is wrong, exit code 2
-    # bad input (in this process: the installed script was run above)
+    # bad input: one line naming what is wrong, exit code 2 (run in this process: the
+    # installed script was run above)
     for bad, what in [
         (["--board", "9by6"], "COLSxROWS"),
         (["--board", "7x5"], "images"),
