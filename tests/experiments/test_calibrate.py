@@ -27,12 +27,17 @@ from tests.experiments.test_cli import assert_one_line_error, walkerslam
 from tests.slam.square_laps import TRUE, write_log
 
 TRUE_TRACK, TRUE_RATIO, TRUE_MEAN = 0.68, 1.01, 0.204
-# the true walker as above; the software's calibration is SimConfig's: 203 mm and 0.64 m
+# the true walker as above; the software's calibration is SimConfig's: 203 mm and 0.64 m.
+# Calibration and dead reckoning read the encoders (and the ground truth) alone, and the
+# cameras draw from streams of their own: at 1 Hz instead of 10 they change none of this
+# file's numbers (the same calibrations to the bit) in ~40 % less time.
 MISCALIBRATED = replace(
     SimConfig(),
     walker=replace(WalkerParams(), half_track_m=TRUE_TRACK / 2),
     track_error_m=0.64 - TRUE_TRACK,
     wheel_diameter_ratio_error=TRUE_RATIO - 1.0,
+    depth_rate_hz=1,
+    tag_rate_hz=1,
 )
 
 

@@ -12,9 +12,14 @@ from collections import Counter
 import pytest
 
 from experiments.simulation import RunSpec, simulate
+from hardware.sim.simulator import SimConfig
 from hardware.sim.user import UserProfile
 
 USERS = range(12)
+# Without braking nothing the walker senses changes how they move (the cameras draw from
+# streams of their own), so the cameras run at 1 Hz instead of 10: the same collisions at
+# the same times (seeds 0-2 checked), in ~30 % less time.
+CAMERAS_1HZ = SimConfig(depth_rate_hz=1, tag_rate_hz=1)
 
 
 @pytest.mark.slow
@@ -28,7 +33,8 @@ def test_users_without_braking_collide_like_the_thesis_users() -> None:
                 seed=seed,
                 duration_s=400.0,
                 user_profile=UserProfile.sample(seed),
-            )
+            ),
+            sim_config=CAMERAS_1HZ,
         )
         assert run.sim.user.finished, f"user {seed} did not finish the route"
         kinds.update(c.kind for c in run.pipeline.recorded.collisions)
