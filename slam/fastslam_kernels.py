@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from slam.kernel_math import greedy_pairs, inverse, wrap
+from slam.kernel_math import copy_into, fill, greedy_pairs, inverse, wrap
 
 LOG_TWO_PI = math.log(2.0 * math.pi)
 
@@ -36,8 +36,8 @@ def _predict(pose, lm, d, zhat, g_s, g_l) -> None:
     r = math.sqrt(q)
     zhat[0] = math.hypot(dx, dy)
     zhat[1] = wrap(math.atan2(dy, dx) - pose[2])
-    g_s[:, :] = 0.0
-    g_l[:, :] = 0.0
+    fill(g_s, 0.0)
+    fill(g_l, 0.0)
     g_l[0, 0], g_l[0, 1] = dx / r, dy / r
     g_l[1, 0], g_l[1, 1] = -dy / q, dx / q
     g_s[0, 0], g_s[0, 1] = -dx / r, -dy / r
@@ -126,7 +126,7 @@ def _observe(pose, sigma_i, lm, lc, z_o, r_o, d, proposal, work, nu, s, s_inv, m
     for a in range(d):
         q[a, a] += r_o[a]
     if not proposal:
-        s[:, :] = q
+        copy_into(s, q)
         return inverse(s, d, s_inv)
     _gcg(g_s, sigma_i, pg, s)
     for a in range(d):
@@ -179,12 +179,13 @@ def fold(mu, sigma, means, covs, seen, w, cols, z, r, gate, gain, proposal, logw
                 nus[i], ss[i], s_invs[i], mu_new[i], sig_new[i],
             )  # fmt: skip
         # the gate: ν̄ᵀ C⁻¹ ν̄ of the weighted mixture matched to one Gaussian
-        mean_nu[:] = 0.0
+        for a in range(d):
+            mean_nu[a] = 0.0
         for i in range(n):
             if seen[i, col]:
                 for a in range(d):
                     mean_nu[a] += w[i] / w_sum * nus[i, a]
-        c_mix[:, :] = 0.0
+        fill(c_mix, 0.0)
         for i in range(n):
             if seen[i, col]:
                 wi = w[i] / w_sum
@@ -207,7 +208,7 @@ def fold(mu, sigma, means, covs, seen, w, cols, z, r, gate, gain, proposal, logw
                 mu[i, 0] = mu_new[i, 0]
                 mu[i, 1] = mu_new[i, 1]
                 mu[i, 2] = wrap(mu_new[i, 2])
-                sigma[i] = sig_new[i]
+                copy_into(sigma[i], sig_new[i])
             logw[i] += _log_normal(nus[i], s_invs[i], dets[i], d) / gain
     return used
 
@@ -283,7 +284,7 @@ def update_landmarks(
                 lm[1] = poses[i, 1] + rr * sn
                 # J_z = [[c, −r s], [s, r c]] (and 1 for the yaw): J_z R J_zᵀ
                 v0, v1 = r[o, 0], r[o, 1]
-                lc[:, :] = 0.0
+                fill(lc, 0.0)
                 lc[0, 0] = c * c * v0 + rr * rr * sn * sn * v1
                 lc[1, 1] = sn * sn * v0 + rr * rr * c * c * v1
                 lc[0, 1] = lc[1, 0] = c * sn * v0 - rr * rr * sn * c * v1
@@ -397,7 +398,7 @@ def associate(
             if proposal:
                 _gcg(g_s, sigma[i], pg, s)
             else:
-                s[:, :] = 0.0
+                fill(s, 0.0)
             for a in range(d):
                 s[a, a] += 2.0 * r[o, a]
             det = inverse(s, d, s_inv)
