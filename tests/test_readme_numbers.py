@@ -55,7 +55,8 @@ def test_the_readme_quotes_a_fresh_demo_run(tmp_path):
     sim = simulate_trial(
         "thesis-course", log, controller="open-loop", surface="dusty", seed=0, duration_s=300
     )
-    m = replay_log(log, tmp_path / "dr", localizer="dead-reckoning", figures=False).metrics
+    dr = replay_log(log, tmp_path / "dr", localizer="dead-reckoning", figures=False)
+    m = dr.metrics
     vc = replay_log(
         log,
         tmp_path / "vc",
@@ -63,8 +64,7 @@ def test_the_readme_quotes_a_fresh_demo_run(tmp_path):
         figures=False,
         drag_metrics=False,
     ).metrics
-    res = replay_log(log, tmp_path / "dr2", figures=False, drag_metrics=False)
-    est, gt = res.pipeline.localizer.trajectory(), res.pipeline.recorded.groundtruth_trajectory()
+    est, gt = dr.pipeline.localizer.trajectory(), dr.pipeline.recorded.groundtruth_trajectory()
     err = np.degrees(np.abs(np.remainder(est.interpolate(gt.t)[:, 2] - gt.poses[:, 2] + np.pi,
                                          2 * np.pi) - np.pi))  # fmt: skip
     fresh = {
