@@ -55,14 +55,15 @@ def test_the_readme_quotes_a_fresh_demo_run(tmp_path):
     sim = simulate_trial(
         "thesis-course", log, controller="open-loop", surface="dusty", seed=0, duration_s=300
     )
-    dr = replay_log(log, tmp_path / "dr", localizer="dead-reckoning", figures=False)
+    kw = {"figures": False, "reference_map": False}  # (the README quotes no reference-map number)
+    dr = replay_log(log, tmp_path / "dr", localizer="dead-reckoning", **kw)
     m = dr.metrics
     vc = replay_log(
         log,
         tmp_path / "vc",
         mapper_config=MapperConfig(grid=GridConfig(model="view-count")),
-        figures=False,
         drag_metrics=False,
+        **kw,
     ).metrics
     est, gt = dr.pipeline.localizer.trajectory(), dr.pipeline.recorded.groundtruth_trajectory()
     err = np.degrees(np.abs(np.remainder(est.interpolate(gt.t)[:, 2] - gt.poses[:, 2] + np.pi,

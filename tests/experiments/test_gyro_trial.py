@@ -18,6 +18,8 @@ from hardware.sim.simulator import SimConfig
 from tests.experiments.test_cli import assert_one_line_error, walkerslam
 
 GYRO_ON = "dead-reckoning.noise.gyro.enabled=true"
+# what these replays check is the localizer's: no figures, no map metrics
+NO_MAP_METRICS = {"figures": False, "drag_metrics": False, "reference_map": False}
 
 
 def test_simulate_gyro_records_it_and_replay_fuses_it(tmp_path):
@@ -63,10 +65,10 @@ def test_gyro_aided_dead_reckoning_keeps_its_heading_on_a_dusty_braked_trial(tmp
     )  # fmt: skip
     simulate(spec, sim_config=SimConfig(gyro=GyroSimConfig(enabled=True)))
     trial = read_log(log)
-    plain = replay_log(trial, tmp_path / "plain", figures=False, drag_metrics=False)
+    plain = replay_log(trial, tmp_path / "plain", **NO_MAP_METRICS)
     fused = replay_log(
         trial, tmp_path / "gyro", localizer_overrides={"noise.gyro.enabled": True},
-        figures=False, drag_metrics=False,
+        **NO_MAP_METRICS,
     )  # fmt: skip
     # the heading error braking adds (slip over-rotating the odometry), which the gyro's
     # turn does not have
@@ -103,7 +105,7 @@ def test_a_still_start_holds_the_walker_and_gives_the_gyro_its_bias(tmp_path):
     assert np.hypot(*(walking[-1, 1:3] - still[0, 1:3])) > 0.01  # then the user walks
     fused = replay_log(
         trial, tmp_path / "r", localizer_overrides={"noise.gyro.enabled": True},
-        figures=False, drag_metrics=False,
+        **NO_MAP_METRICS,
     )  # fmt: skip
     gyro = fused.metrics["localizer_diagnostics"]["gyro"]
     bias = trial.metadata["gyro"]["turn_on_bias_rad_s"]
@@ -120,8 +122,7 @@ def test_a_still_start_holds_the_walker_and_gives_the_gyro_its_bias(tmp_path):
         read_log(walked),
         tmp_path / "w",
         localizer_overrides={"noise.gyro.enabled": True},
-        figures=False,
-        drag_metrics=False,
+        **NO_MAP_METRICS,
     ).metrics["localizer_diagnostics"]["gyro"]
     assert abs(moving["bias_rad_s"] - bias) > 3 * abs(gyro["bias_rad_s"] - bias)
 

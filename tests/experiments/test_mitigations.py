@@ -104,8 +104,11 @@ def gyro_trial(tmp_path_factory):
 
 
 def test_replay_applies_mitigations_and_records_them(gyro_trial, tmp_path) -> None:
-    plain = replay_log(gyro_trial, tmp_path / "plain", figures=False)
-    res = replay_log(gyro_trial, tmp_path / "m", figures=False, mitigations=("gyro", "map-hygiene"))
+    plain = replay_log(gyro_trial, tmp_path / "plain", figures=False, reference_map=False)
+    res = replay_log(
+        gyro_trial, tmp_path / "m", figures=False, reference_map=False,
+        mitigations=("gyro", "map-hygiene"),
+    )  # fmt: skip
     config = json.loads((res.out_dir / "config.json").read_text())
     assert config["mitigations"]["names"] == ["gyro", "map-hygiene"]
     assert config["localizer_config"]["noise"]["gyro"]["enabled"] is True
@@ -119,6 +122,7 @@ def test_replay_applies_mitigations_and_records_them(gyro_trial, tmp_path) -> No
         tmp_path / "over",
         figures=False,
         drag_metrics=False,
+        reference_map=False,
         mitigations=("gyro",),
         localizer_overrides={"noise.gyro.enabled": False},
     )
