@@ -5,7 +5,7 @@ nearest-neighbour pairing.
 FastSLAM's kernels fill and copy their small matrices with loops (`fill`, `copy_into`),
 not slice assignment (`a[:, :] = 0.0`, `a[i] = b[i]`): numba compiles a slice assignment
 through its general indexing code, once per array type and function, which took a third
-of `fold`'s compile time (23 → 16 s on the first run after an install, here). The other
+of `fold`'s compile time (19–23 → 14–16 s on the first run after an install, here). The other
 kernels (grid, scan, distance, smoother) still assign slices; whether loops shorten
 their compiles as much is not measured."""
 
