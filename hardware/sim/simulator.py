@@ -380,14 +380,19 @@ class Simulator:
             self.user.touching(s, None, self.dt)
             return
         bands = self._parts_by_band()
-        contacts = [c for band, parts in bands.items() for c in self.world.contacts(parts, *band)]
+        clearance = CLEARANCE_HORIZON_M
+        for band, parts in bands.items():
+            polys = self.world.polygon_set(*band)
+            gap = polys.least_gap(np.array([p for _, p in parts]), CLEARANCE_HORIZON_M)
+            clearance = min(clearance, gap)
+        # (0: a part may touch an obstacle; the contacts tell)
+        contacts = []
+        if clearance == 0.0:
+            contacts = [
+                c for band, parts in bands.items() for c in self.world.contacts(parts, *band)
+            ]
         if not contacts:
             self.user.touching(s, None, self.dt)
-            clearance = CLEARANCE_HORIZON_M
-            for band, parts in bands.items():
-                polys = self.world.polygon_set(*band)
-                near, _ = polys.clearances(np.array([p for _, p in parts]), CLEARANCE_HORIZON_M)
-                clearance = min(clearance, float(near.min()))
             self._free_travel_m = clearance
             return
         moved = np.zeros(2)

@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numba import njit
 
 from hardware.sim.dynamics import WalkerParams, WalkerState
 from hardware.sim.user_vision import (
@@ -347,9 +348,9 @@ class RouteFollower:
         # Closest route point to the belief, searched only a little behind and ahead so
         # the user never skips a loop of a route that passes near itself.
         lo = max(self._progress - SEARCH_BEHIND, 0)
-        window = self._dense[lo : self._progress + SEARCH_AHEAD]
-        d2 = (window[:, 0] - self.belief[0]) ** 2 + (window[:, 1] - self.belief[1]) ** 2
-        self._progress = max(self._progress, lo + int(np.argmin(d2)))
+        bx, by = self.belief[0], self.belief[1]
+        nearest = _nearest(self._dense, lo, self._progress + SEARCH_AHEAD, bx, by)
+        self._progress = max(self._progress, nearest)
 
     def _route_aim(self) -> tuple[np.ndarray, float]:
         """The pursuit point (the route point lookahead_m on, moved across the route by
@@ -468,6 +469,17 @@ class RouteFollower:
         diff = yaw_torque / (w.alpha * w.half_track_m)
         diff = min(max(diff, -self.p.max_steer_n), self.p.max_steer_n)
         return 0.5 * (total - diff), 0.5 * (total + diff)
+
+
+@njit(cache=True, nogil=True)
+def _nearest(points: np.ndarray, lo: int, hi: int, x: float, y: float) -> int:
+    """The index in [lo, hi) of the point (N, 2) nearest to (x, y); the first of equals."""
+    best, at = np.inf, lo
+    for i in range(lo, min(hi, points.shape[0])):
+        d2 = (points[i, 0] - x) ** 2 + (points[i, 1] - y) ** 2
+        if d2 < best:
+            best, at = d2, i
+    return at
 
 
 def _resample(route: np.ndarray) -> np.ndarray:

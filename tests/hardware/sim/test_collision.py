@@ -135,3 +135,41 @@ def test_polygon_set_matches_pairwise_penetration() -> None:
 def test_penetration_rejects_bad_shapes() -> None:
     with pytest.raises(ValueError, match="shape"):
         penetration(np.zeros((2, 2)), box(0, 1, 0, 1))
+
+
+def test_least_gap_is_the_distance_when_apart_and_zero_when_touching() -> None:
+    """The broad phase's bound: for parts apart from every polygon, their least distance
+    capped at the horizon (exactly what `clearances` gives); 0 whenever a part overlaps a
+    polygon, so that the simulator never skips a contact."""
+    rng = np.random.default_rng(4)
+    polys = np.array(
+        [
+            rectangle(*rng.uniform(0, 8, 2), rng.uniform(-3, 3), *rng.uniform(0.05, 1.0, 2))
+            for _ in range(12)
+        ]
+    )
+    ps = PolygonSet([f"o{i}" for i in range(12)], polys)
+    seen = {"apart": 0, "overlap": 0, "beyond": 0}
+    for _ in range(300):
+        parts = np.array(
+            [
+                body_rectangle((*rng.uniform(0, 8, 2), rng.uniform(-3, 3)), -0.1, 0.64, -0.3, 0.3),
+                rectangle(*rng.uniform(0, 8, 2), rng.uniform(-3, 3), 0.1, 0.2),
+            ]
+        )
+        gap = ps.least_gap(parts, 0.3)
+        dist, _ = ps.clearances(parts)
+        if dist.min() <= 0.0:
+            seen["overlap"] += 1
+            assert gap == 0.0
+        elif dist.min() >= 0.3:
+            seen["beyond"] += 1
+            assert gap == 0.3
+        else:
+            seen["apart"] += 1
+            assert gap == pytest.approx(dist.min(), abs=1e-12)
+    assert min(seen.values()) >= 20, seen
+    # touching along an edge counts as maybe touching: the contacts decide
+    assert PolygonSet(["a"], box(0, 1, 0, 1)[None]).least_gap(box(1, 2, 0, 1)[None], 0.3) == 0.0
+    with pytest.raises(ValueError, match="shape"):
+        ps.least_gap(np.zeros((2, 2)), 0.3)
