@@ -155,6 +155,7 @@ def replay_log(
     localizer_overrides: dict[str, Any] | None = None,
     mapper_config: MapperConfig | None = None,
     figures: bool = True,
+    map_figure: bool = True,
     reference_map: bool = True,
     controller: str | None = None,
     drag_config: DragConfig | None = None,
@@ -176,6 +177,8 @@ def replay_log(
     noise levels), then `localizer_overrides` ({field path: value}, the user's --set)
     (`experiments.config.configure`; config.json records which proposals applied and
     which the config had no field for).
+    figures: the figures besides map.png; map_figure: map.png (a study whose replays'
+    folders are removed skips it).
     reference_map: also map the same frames at the true poses (when the log has ground
     truth), for the side-by-side figure, the reference map scores and the over-steer
     metric (experiments.drag).
@@ -223,7 +226,7 @@ def replay_log(
     metrics, gt = _evaluate(r)
     if phase is not None:
         phase("figures and files" if figures else "files")
-    files = _write(r, metrics, gt, figures)
+    files = _write(r, metrics, gt, figures, map_figure)
     duration = metrics["duration_s"]
     return ReplayResult(r.out, metrics, duration, files, r.pipeline, r.world)
 
@@ -450,7 +453,9 @@ def _diagnostics(r: _Replay, metrics: dict[str, Any]) -> None:
         )
 
 
-def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, Path]:
+def _write(
+    r: _Replay, metrics: dict[str, Any], gt, figures: bool, map_figure: bool = True
+) -> dict[str, Path]:
     """trajectory.tum, groundtruth.tum, the drag series, maps, figures, metrics.json,
     config.json."""
     out, pipeline = r.out, r.pipeline
@@ -466,12 +471,13 @@ def _write(r: _Replay, metrics: dict[str, Any], gt, figures: bool) -> dict[str, 
             r.reference_commands, r.drag_cfg, figures, r.trial.metadata.get("config") or {},
         )
     )  # fmt: skip
-    from experiments.report import write_map_png
+    if map_figure:
+        from experiments.report import write_map_png
 
-    files["map_png"] = write_map_png(
-        out / "map.png", pipeline.mapper.grid, r.outlines, est, gt, localizer=r.localizer,
-        log=r.log_path,
-    )  # fmt: skip
+        files["map_png"] = write_map_png(
+            out / "map.png", pipeline.mapper.grid, r.outlines, est, gt, localizer=r.localizer,
+            log=r.log_path,
+        )  # fmt: skip
     files["map_yaml"], files["map_pgm"] = save_map_server(pipeline.mapper.grid, out / "map.yaml")
     if figures:
         from experiments.report import write_figures

@@ -201,6 +201,7 @@ def run_slip_trial(spec: RunSpec) -> dict[str, Any]:
     if "seed" in res["config"]["localizer_config"] and "seed" not in over:
         over["seed"] = spec.seed  # as the live localizer had it
     replay_dir = log.with_suffix("")
+    keep = spec.labels.get("keep_log", True)
     rep = replay_log(
         log,
         replay_dir,
@@ -209,10 +210,11 @@ def run_slip_trial(spec: RunSpec) -> dict[str, Any]:
         mitigations=spec.mitigations,
         calibration=calibration,
         figures=False,
+        map_figure=keep,  # (removed below otherwise)
     )
     for name, path in REPLAY_METRICS:
         res["metrics"][name] = _dig(rep.metrics, path)
-    if not spec.labels.get("keep_log", True):
+    if not keep:
         log.unlink(missing_ok=True)
         shutil.rmtree(replay_dir, ignore_errors=True)
     return res

@@ -314,6 +314,12 @@ def test_a_replay_without_figures_still_writes_the_map_figure(corner_trial, tmp_
     assert (tmp_path / "map.png").exists() and (tmp_path / "map.pgm").exists()
 
 
+def test_a_replay_without_the_map_figure_writes_the_map_alone(corner_trial, tmp_path, saved):
+    res = replay_log(corner_trial, tmp_path, figures=False, map_figure=False, drag_metrics=False)
+    assert saved == {} and "map_png" not in res.files
+    assert not (tmp_path / "map.png").exists() and (tmp_path / "map.pgm").exists()
+
+
 def test_compare_draws_the_true_outlines_on_its_trajectories_figure(corner_trial, tmp_path, saved):
     res = compare([corner_trial], ["dead-reckoning", "ekf-slam"], seeds=1, out_dir=tmp_path)
     assert res.files["corner_figure"] == tmp_path / "corner_trajectories.png"
