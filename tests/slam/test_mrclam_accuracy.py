@@ -17,10 +17,12 @@ def robot1():
     return open_dataset("mrclam", data_dir("mrclam_dataset7"), robot=1)
 
 
+# the checks read the localizers' accuracy, not the drag metrics or the map figure
+QUICK = {"figures": False, "map_figure": False, "reference_map": False, "drag_metrics": False}
+
+
 def _replay(source, tmp_path, localizer):
-    return replay_log(
-        source, tmp_path / localizer, localizer=localizer, figures=False, reference_map=False
-    ).metrics
+    return replay_log(source, tmp_path / localizer, localizer=localizer, **QUICK).metrics
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +102,6 @@ def test_ekf_slams_whole_state_smoothed_takes_the_final_map(robot1, ekf_robot1, 
         tmp_path / "pose",
         localizer="ekf-slam",
         localizer_overrides={"smoother": "rts"},
-        figures=False,
-        reference_map=False,
+        **QUICK,
     ).metrics
     assert full["ate_rmse_m"] < 0.6 * pose_only["ate_rmse_m"]
