@@ -159,7 +159,9 @@ def dusty_replay(dusty_trial, tmp_path_factory):
 
 def test_no_drag_with_perfect_poses(dusty_trial, tmp_path, monkeypatch):
     monkeypatch.setattr(run, "create", lambda *a, **k: TruthLocalizer())
-    m = replay_log(dusty_trial, tmp_path, figures=False, controller="open-loop").metrics
+    m = replay_log(
+        dusty_trial, tmp_path, figures=False, map_figure=False, controller="open-loop"
+    ).metrics
     d = m["drag"]
     assert d["frames"] > 300 and d["braked_turn_frames"] > 10
     for kind in ("absolute", "local"):
@@ -190,7 +192,7 @@ def test_drag_is_clearly_positive_on_a_dusty_floor(dusty_replay):
 def test_less_drag_without_slip(dusty_replay, tmp_path):
     clean = tmp_path / "noslip.mcap"
     simulate_trial("thesis-course", clean, surface=0.0, seed=0, duration_s=35.0)
-    d = replay_log(clean, tmp_path / "r", figures=False).metrics["drag"]
+    d = replay_log(clean, tmp_path / "r", figures=False, map_figure=False).metrics["drag"]
     dusty = dusty_replay.metrics["drag"]
     # what is left is the wheel-diameter and track calibration error
     assert d["local"]["braked_turn"]["mean_m"] < 0.5 * dusty["local"]["braked_turn"]["mean_m"]

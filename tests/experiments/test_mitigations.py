@@ -104,9 +104,11 @@ def gyro_trial(tmp_path_factory):
 
 
 def test_replay_applies_mitigations_and_records_them(gyro_trial, tmp_path) -> None:
-    plain = replay_log(gyro_trial, tmp_path / "plain", figures=False, reference_map=False)
+    plain = replay_log(
+        gyro_trial, tmp_path / "plain", figures=False, map_figure=False, reference_map=False
+    )
     res = replay_log(
-        gyro_trial, tmp_path / "m", figures=False, reference_map=False,
+        gyro_trial, tmp_path / "m", figures=False, map_figure=False, reference_map=False,
         mitigations=("gyro", "map-hygiene"),
     )  # fmt: skip
     config = json.loads((res.out_dir / "config.json").read_text())
@@ -121,6 +123,7 @@ def test_replay_applies_mitigations_and_records_them(gyro_trial, tmp_path) -> No
         gyro_trial,
         tmp_path / "over",
         figures=False,
+        map_figure=False,
         drag_metrics=False,
         reference_map=False,
         mitigations=("gyro",),

@@ -22,8 +22,8 @@ def test_a_simulated_trial_proposes_its_encoders_noise(tmp_path):
     simulate_trial("thesis-course", log, surface="dusty", seed=1, duration_s=8.0)
     assert read_log(log).metadata["localizer_settings"] == proposed_localizer_settings("dusty")
     r = replay_log(
-        log, tmp_path / "ekf", localizer="ekf-slam", figures=False, drag_metrics=False,
-        reference_map=False,
+        log, tmp_path / "ekf", localizer="ekf-slam", figures=False, map_figure=False,
+        drag_metrics=False, reference_map=False,
     )  # fmt: skip
     config = json.loads((r.out_dir / "config.json").read_text())
     assert config["source_localizer_settings"] == {"noise.wheel_m": dusty}
@@ -34,9 +34,9 @@ def test_a_simulated_trial_proposes_its_encoders_noise(tmp_path):
 def dead_reckoning_phantom(course_trial, tmp_path_factory):
     """Dead reckoning's phantom area on the trial (the baseline of every localizer)."""
     out = tmp_path_factory.mktemp("dr")
-    return replay_log(course_trial, out, figures=False, reference_map=False).metrics[
-        "phantom_area_m2"
-    ]
+    return replay_log(
+        course_trial, out, figures=False, map_figure=False, reference_map=False
+    ).metrics["phantom_area_m2"]
 
 
 @pytest.mark.slow
@@ -58,7 +58,7 @@ def test_tag_localizers_cut_the_phantom_area(
     (The reference map, at the true poses, is not made: nothing here reads it.)"""
     dr = dead_reckoning_phantom
     est = replay_log(
-        course_trial, tmp_path / localizer, localizer=localizer, figures=False,
+        course_trial, tmp_path / localizer, localizer=localizer, figures=False, map_figure=False,
         reference_map=False,
     )  # fmt: skip
     assert dr > 5.0  # the trial drags obstacles: there is something to cut

@@ -52,7 +52,7 @@ def test_round_trip_reproduces_the_logged_commands(trial, tmp_path):
 
 
 def test_another_controller_gives_other_commands(trial, tmp_path):
-    m = replay_log(trial, tmp_path, controller="none", figures=False).metrics
+    m = replay_log(trial, tmp_path, controller="none", figures=False, map_figure=False).metrics
     c = m["controller_replay"]
     assert c["controller"] == "none" and c["recorded_controller"] == "open-loop"
     assert c["rms_diff_nm"] > 0.1
@@ -86,6 +86,8 @@ def test_a_log_without_brake_commands(tmp_path):
     with LogWriter(log, WalkerCalibration()) as w:
         for k in range(50):
             w.write(EncoderTicks(0.02 * k, 3 * k, 3 * k))
-    m = replay_log(log, tmp_path / "o", controller="open-loop", figures=False).metrics
+    m = replay_log(
+        log, tmp_path / "o", controller="open-loop", figures=False, map_figure=False
+    ).metrics
     assert m["controller_replay"]["commands"] == 0
     assert "over_steer" not in m and "drag" not in m

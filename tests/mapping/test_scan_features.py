@@ -114,7 +114,7 @@ def test_replay_gives_a_laser_logs_corners_to_ekf_slam(tmp_path):
     log = data_dir("carmen_corrected_logs") / "freiburg-101-corrected.log.gz"
     res = replay_log(
         open_dataset("carmen", log), tmp_path, localizer="ekf-slam", figures=False,
-        drag_metrics=False, reference_map=False, scan_corners=True,
+        map_figure=False, drag_metrics=False, reference_map=False, scan_corners=True,
     )  # fmt: skip
     m, d = res.metrics, res.metrics["localizer_diagnostics"]
     assert m["messages"]["LaserScan"] == 292 and m["messages"]["scan_corners"] > 300

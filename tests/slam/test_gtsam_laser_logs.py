@@ -31,7 +31,7 @@ def test_gtsam_follows_gmapping_where_dead_reckoning_cannot(
     for name in ("dead-reckoning", "gtsam"):
         res = replay_log(
             open_dataset("carmen", path), tmp_path / name, localizer=name, figures=False,
-            reference_map=False, drag_metrics=False,
+            map_figure=False, reference_map=False, drag_metrics=False,
         )  # fmt: skip
         ate[name] = res.metrics["ate_rmse_m"]
         walls[name] = res.metrics["wall_spread_m"]
@@ -59,7 +59,7 @@ def test_fhw_revisit_is_closed_by_loop_matches_that_agree(tmp_path):
     map's spread within 50 cm 8.1 -> 6.9 cm (GMapping's poses: 6.2)."""
     path = data_dir("carmen_corrected_logs") / "fhw-corrected.log.gz"
     res = replay_log(
-        open_dataset("carmen", path), tmp_path, localizer="gtsam", figures=False,
+        open_dataset("carmen", path), tmp_path, localizer="gtsam", figures=False, map_figure=False,
         reference_map=False, drag_metrics=False,
     )  # fmt: skip
     m = res.metrics

@@ -400,7 +400,7 @@ def test_hits_beyond_the_mapped_range_are_not_mapped(tmp_path):
     import_to_log(open_dataset("carmen", path), mcap)
     for name, source in (("dataset", open_dataset("carmen", path)), ("mcap", read_log(mcap))):
         res = replay_log(
-            source, tmp_path / name, localizer="dead-reckoning", figures=False,
+            source, tmp_path / name, localizer="dead-reckoning", figures=False, map_figure=False,
             reference_map=False, drag_metrics=False,
         )  # fmt: skip
         mapper = res.pipeline.mapper
@@ -412,6 +412,7 @@ def test_hits_beyond_the_mapped_range_are_not_mapped(tmp_path):
     chosen = MapperConfig(scan=ScanConfig(max_range_m=40.0))
     res = replay_log(
         open_dataset("carmen", path), tmp_path / "chosen", localizer="dead-reckoning",
-        mapper_config=chosen, figures=False, reference_map=False, drag_metrics=False,
+        mapper_config=chosen, figures=False, map_figure=False, reference_map=False,
+        drag_metrics=False,
     )  # fmt: skip
     assert res.pipeline.mapper.config.scan.max_range_m == 40.0
