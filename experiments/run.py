@@ -454,7 +454,7 @@ def _diagnostics(r: _Replay, metrics: dict[str, Any]) -> None:
 
 
 def _write(
-    r: _Replay, metrics: dict[str, Any], gt, figures: bool, map_figure: bool = True
+    r: _Replay, metrics: dict[str, Any], gt, figures: bool, map_figure: bool
 ) -> dict[str, Path]:
     """trajectory.tum, groundtruth.tum, the drag series, maps, figures, metrics.json,
     config.json."""

@@ -60,6 +60,13 @@ def _check_polygon(p: np.ndarray, name: str) -> np.ndarray:
     return p
 
 
+def _check_parts(parts: np.ndarray) -> np.ndarray:
+    parts = np.asarray(parts, dtype=float)
+    if parts.ndim != 3 or parts.shape[2] != 2 or parts.shape[1] < 3:
+        raise ValueError(f"parts must be a (P, K>=3, 2) array, got shape {parts.shape}")
+    return parts
+
+
 def edge_normals(p: np.ndarray) -> np.ndarray:
     """Outward unit normals (K×2) of the edges p[i] → p[i+1] of a CCW polygon (K×2), or
     of each polygon of a stack (..., K, 2) of them."""
@@ -179,17 +186,6 @@ def polygon_distance(a: np.ndarray, b: np.ndarray) -> float:
     return float(min(point_polygon_distance(a, b).min(), point_polygon_distance(b, a).min()))
 
 
-def _vertex_edge_distance(points: np.ndarray, polys: np.ndarray) -> np.ndarray:
-    """Per pair m, the least distance from a vertex of points[m] (M, K, 2) to an edge of
-    polys[m] (M, L, 2)."""
-    a = polys
-    e = polys[:, [*range(1, polys.shape[1]), 0]] - a  # (M, L, 2)
-    d = points[:, :, None, :] - a[:, None, :, :]  # (M, K, L, 2)
-    t = np.clip((d * e[:, None]).sum(-1) / (e * e).sum(-1)[:, None], 0.0, 1.0)
-    gap = d - t[..., None] * e[:, None]
-    return np.sqrt((gap * gap).sum(-1)).min(axis=(1, 2))
-
-
 @njit(cache=True, nogil=True)
 def _vertex_edge_gap(a: np.ndarray, b: np.ndarray) -> float:
     """The least distance from a vertex of polygon a (K, 2) to an edge of polygon b (L, 2)."""
@@ -205,6 +201,16 @@ def _vertex_edge_gap(a: np.ndarray, b: np.ndarray) -> float:
             gx, gy = dx - t * ex, dy - t * ey
             best = min(best, math.sqrt(gx * gx + gy * gy))
     return best
+
+
+@njit(cache=True, nogil=True)
+def _vertex_edge_gaps(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per pair q, the least distance from a vertex of a[q] (Q, K, 2) to an edge of b[q]
+    (Q, L, 2)."""
+    out = np.empty(a.shape[0])
+    for q in range(a.shape[0]):
+        out[q] = _vertex_edge_gap(a[q], b[q])
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -300,9 +306,7 @@ class PolygonSet:
         self, parts: np.ndarray, max_dist: float = np.inf
     ) -> tuple[np.ndarray, tuple[str, ...]]:
         """`clearance` for many convex parts at once (P, K, 2): distances (P,) and names."""
-        parts = np.asarray(parts, dtype=float)
-        if parts.ndim != 3 or parts.shape[2] != 2 or parts.shape[1] < 3:
-            raise ValueError(f"parts must be a (P, K>=3, 2) array, got shape {parts.shape}")
+        parts = _check_parts(parts)
         n = len(parts)
         best = np.full(n, np.inf)
         who = np.full(n, -1)
@@ -315,7 +319,7 @@ class PolygonSet:
             a, b = parts[ip], self.polygons[im]
             axes = np.concatenate([edge_normals(a), self.normals[im]], axis=1)
             push = np.minimum(*_axis_pushes(axes, a, b))
-            dist = np.minimum(_vertex_edge_distance(a, b), _vertex_edge_distance(b, a))
+            dist = np.minimum(_vertex_edge_gaps(a, b), _vertex_edge_gaps(b, a))
             dist = np.where((push > 0).all(axis=1), -push.min(axis=1), dist)
             order = np.lexsort((dist, ip))  # by part, nearest first
             first = order[np.r_[True, ip[order][1:] != ip[order][:-1]]]
@@ -333,9 +337,7 @@ class PolygonSet:
         Apart, two convex polygons are as far as a vertex of one from an edge of the
         other; a part counts as apart from a polygon when an edge normal separates them
         by more than 1e-9 m, so that no contact `contacts` finds is missed."""
-        parts = np.asarray(parts, dtype=float)
-        if parts.ndim != 3 or parts.shape[2] != 2 or parts.shape[1] < 3:
-            raise ValueError(f"parts must be a (P, K>=3, 2) array, got shape {parts.shape}")
+        parts = _check_parts(parts)
         return float(_least_gap(parts, self.polygons, self.lo, self.hi, float(horizon)))
 
     def contacts(self, parts: Sequence[tuple[str, np.ndarray]]) -> list[Contact]:
