@@ -740,7 +740,10 @@ class GtsamSmoother(Localizer):
             return slip_odometry_factor(X(a), X(a + 1), S(a), delta, *slip, noise)
         return gtsam.BetweenFactorPose2(X(a), X(a + 1), gtsam.Pose2(*delta), noise)
 
-    def _new_keyframe(self, t: float) -> None:
+    def _new_keyframe(self, t: float, flush: bool = True) -> None:
+        """A keyframe at t, at the motion since the latest. flush=False leaves it for the
+        caller's iSAM2 update (one update for the keyframe and the factors on it), with
+        its predicted pose as the latest keyframe's until then."""
         k = self._kf + 1
         slip = (self._delta_jk, self._k.copy()) if self._slip else None
         if self.config.scan_matching and not self._adapted:
@@ -752,7 +755,8 @@ class GtsamSmoother(Localizer):
         factor = self._odometry_factor(self._kf, self._delta, self._delta_cov, slip, self._unknown)
         self._graph.add(factor)
         self._unknown = np.zeros((3, 3))
-        self._values.insert(X(k), gtsam.Pose2(*compose(self._kf_pose, self._delta)))
+        predicted = compose(self._kf_pose, self._delta)
+        self._values.insert(X(k), gtsam.Pose2(*predicted))
         if self._slip:
             walk = self.config.slip.random_walk_per_s * math.sqrt(max(t - self._kf_t[-1], 0.0))
             self._graph.add(slip_walk_factor(S(self._kf), S(k), max(walk, 1e-6)))
@@ -763,21 +767,25 @@ class GtsamSmoother(Localizer):
         self._delta = np.zeros(3)
         self._delta_cov = np.zeros((3, 3))
         self.counts["keyframes"] += 1
-        self._flush()
+        if flush:
+            self._flush()
+        else:
+            self._kf_pose, self._marginal = predicted, None
         self._note(t)
 
-    def _attach(self, t: float) -> None:
+    def _attach(self, t: float, flush: bool) -> None:
         """An observation at t attaches to the latest keyframe, or starts a new one at t
-        when it comes obs_keyframe_dt_s or more after it and the walker has moved."""
+        when it comes obs_keyframe_dt_s or more after it and the walker has moved (its
+        iSAM2 update left to the caller when flush is False)."""
         if t - self._kf_t[-1] >= self.config.obs_keyframe_dt_s and np.any(self._delta != 0):
-            self._new_keyframe(t)
+            self._new_keyframe(t, flush)
 
     def _absolute(self, obs: AbsoluteObservation) -> None:
         """A compass heading or a position fix as a factor on its keyframe (module
         docstring)."""
         if self._kf < 0:
             return
-        self._attach(obs.t)
+        self._attach(obs.t, flush=False)  # updated with the fix below
         a = self.config.absolute
         base = gtsam.noiseModel.Isotropic.Sigma(len(obs.z), obs.sigma)
         noise = _robust("huber" if a.robust_k > 0 else "none", a.robust_k, base)
@@ -792,8 +800,8 @@ class GtsamSmoother(Localizer):
     def _observe(self, obs: LandmarkObservation) -> None:
         if self._kf < 0 or len(obs) == 0:
             return
-        self._attach(obs.t)
         c = self.config
+        self._attach(obs.t, flush=not c.update_per_sighting)  # else with the sightings
         unknown = []
         for lid, z, yaw in zip(obs.ids, obs.z, obs.yaw, strict=True):
             lid = int(lid)
@@ -849,19 +857,32 @@ class GtsamSmoother(Localizer):
 
     def _implausible(self, lid: int, z: np.ndarray) -> bool:
         """Whether the sighting z (range, bearing) of landmark lid fails `gate_chi2`
-        against the current estimate (GtsamConfig)."""
-        pose, pose_cov = self._pose_now()
-        landmark = np.asarray(self.isam.calculateEstimatePoint2(L(lid)), dtype=float)
-        h_pose, h_landmark = range_bearing_jacobians(pose, landmark)
+        against the current estimate (GtsamConfig). The pose's and the landmark's
+        marginals only widen the innovation's covariance beyond the sighting's own
+        noise, so a sighting within the gate on that noise alone is within it: their
+        marginals, which cost iSAM2 more than its update, are computed only for the
+        others (at a keyframe that waits for its update, against its predicted pose)."""
         sr = self._range_sigma(float(z[0]))
+        noise = np.diag([sr * sr, self.config.bearing_sigma_rad**2])
+        _, nu = self._innovation(compose(self._kf_pose, self._delta), lid, z)
+        if float(mahalanobis2(nu, noise)) <= self._gate:
+            return False
+        pose, pose_cov = self._pose_now()  # updates iSAM2 first if a keyframe waits
+        landmark, nu = self._innovation(pose, lid, z)
+        h_pose, h_landmark = range_bearing_jacobians(pose, landmark)
         s_ = (
             congruence(h_pose, pose_cov)
             + congruence(h_landmark, self.isam.marginalCovariance(L(lid)))
-            + np.diag([sr * sr, self.config.bearing_sigma_rad**2])
+            + noise
         )
+        return float(mahalanobis2(nu, s_)) > self._gate
+
+    def _innovation(self, pose: np.ndarray, lid: int, z: np.ndarray):
+        """Landmark lid's current estimate and the sighting z's innovation from pose."""
+        landmark = np.asarray(self.isam.calculateEstimatePoint2(L(lid)), dtype=float)
         nu = z - range_bearing(pose, landmark)
         nu[1] = wrap_angle(nu[1])
-        return float(mahalanobis2(nu, s_)) > self._gate
+        return landmark, nu
 
     def _associate(self, t: float, z: np.ndarray) -> None:
         """Sightings (n, 2) without IDs paired by nearest neighbour with the landmarks
@@ -1281,6 +1302,8 @@ class GtsamSmoother(Localizer):
         covariance to first order: the keyframe's marginal (body-frame: Pose2's
         tangent) plus the odometry's since, rotated into the world frame."""
         if self._marginal is None:
+            if not self.isam.valueExists(X(self._kf)):
+                self._flush()  # a keyframe left for the update of its sightings
             self._marginal = self.isam.marginalCovariance(X(self._kf))
         rot = rotation(self._kf_pose[2], 3)
         cov = congruence(rot, self._marginal + self._delta_cov + self._unknown)

@@ -104,6 +104,16 @@ def test_landmark_position_and_robust_outliers():
     assert 0.01 < np.hypot(*(huber.landmarks()[3][0] - mean)) < 0.5
 
 
+def test_a_sighting_and_the_keyframe_it_starts_share_one_update():
+    """One iSAM2 update per sighting time, whether or not it starts a keyframe (the
+    square: 160 sightings, 34 of them starting a keyframe), plus the start's and the
+    four turns' (keyframes of the odometry alone): 165, where the keyframe had an update
+    of its own before 2026-12-05 (199)."""
+    d = _square_with_landmarks().diagnostics()
+    assert d["keyframes"] == 38 and d["landmark_factors"] == 160
+    assert d["updates"] == 1 + 160 + 4
+
+
 def test_sightings_with_a_wrong_id_are_gated():
     """Three sightings at once with their bearings π off (a wrong ID): gated, the
     trajectory is the clean run's; without the gate they turn the walker (here by 0.2°:
