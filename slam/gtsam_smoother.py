@@ -863,26 +863,34 @@ class GtsamSmoother(Localizer):
         marginals, which cost iSAM2 more than its update, are computed only for the
         others (at a keyframe that waits for its update, against its predicted pose)."""
         sr = self._range_sigma(float(z[0]))
-        noise = np.diag([sr * sr, self.config.bearing_sigma_rad**2])
-        _, nu = self._innovation(compose(self._kf_pose, self._delta), lid, z)
-        if float(mahalanobis2(nu, noise)) <= self._gate:
+        if self._within_noise(lid, z, sr):
             return False
         pose, pose_cov = self._pose_now()  # updates iSAM2 first if a keyframe waits
-        landmark, nu = self._innovation(pose, lid, z)
+        landmark = np.asarray(self.isam.calculateEstimatePoint2(L(lid)), dtype=float)
         h_pose, h_landmark = range_bearing_jacobians(pose, landmark)
         s_ = (
             congruence(h_pose, pose_cov)
             + congruence(h_landmark, self.isam.marginalCovariance(L(lid)))
-            + noise
+            + np.diag([sr * sr, self.config.bearing_sigma_rad**2])
         )
-        return float(mahalanobis2(nu, s_)) > self._gate
-
-    def _innovation(self, pose: np.ndarray, lid: int, z: np.ndarray):
-        """Landmark lid's current estimate and the sighting z's innovation from pose."""
-        landmark = np.asarray(self.isam.calculateEstimatePoint2(L(lid)), dtype=float)
         nu = z - range_bearing(pose, landmark)
         nu[1] = wrap_angle(nu[1])
-        return landmark, nu
+        return float(mahalanobis2(nu, s_)) > self._gate
+
+    def _within_noise(self, lid: int, z: np.ndarray, sr: float) -> bool:
+        """Whether the sighting z of landmark lid (range σ sr) is within the gate on its
+        own noise, from the latest keyframe's pose ⊕ the motion since (in scalars: it
+        runs for every sighting)."""
+        kx, ky, kth = (float(v) for v in self._kf_pose)
+        dx, dy, dth = (float(v) for v in self._delta)
+        c, s = math.cos(kth), math.sin(kth)
+        x, y = kx + c * dx - s * dy, ky + s * dx + c * dy
+        landmark = self.isam.calculateEstimatePoint2(L(lid))
+        ex, ey = float(landmark[0]) - x, float(landmark[1]) - y
+        dr = (float(z[0]) - math.hypot(ex, ey)) / sr
+        db = math.remainder(float(z[1]) - math.atan2(ey, ex) + kth + dth, 2 * math.pi)
+        db /= self.config.bearing_sigma_rad
+        return dr * dr + db * db <= self._gate
 
     def _associate(self, t: float, z: np.ndarray) -> None:
         """Sightings (n, 2) without IDs paired by nearest neighbour with the landmarks
