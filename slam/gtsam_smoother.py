@@ -142,7 +142,7 @@ from gtsam.symbol_shorthand import L, S, T, X
 
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
-from hardware.geometry import compose, rotation, transform_points, wrap_angle
+from hardware.geometry import compose, compose1, rotation, transform_points, wrap1, wrap_angle
 from hardware.messages import DepthFrame, LaserScan, Message
 from hardware.registry import Spec
 from hardware.small_linalg import congruence, dot, eigh2, matmul, solve
@@ -881,15 +881,11 @@ class GtsamSmoother(Localizer):
         """Whether the sighting z of landmark lid (range σ sr) is within the gate on its
         own noise, from the latest keyframe's pose ⊕ the motion since (in scalars: it
         runs for every sighting)."""
-        kx, ky, kth = (float(v) for v in self._kf_pose)
-        dx, dy, dth = (float(v) for v in self._delta)
-        c, s = math.cos(kth), math.sin(kth)
-        x, y = kx + c * dx - s * dy, ky + s * dx + c * dy
+        x, y, th = compose1(self._kf_pose.tolist(), self._delta.tolist())
         landmark = self.isam.calculateEstimatePoint2(L(lid))
         ex, ey = float(landmark[0]) - x, float(landmark[1]) - y
         dr = (float(z[0]) - math.hypot(ex, ey)) / sr
-        db = math.remainder(float(z[1]) - math.atan2(ey, ex) + kth + dth, 2 * math.pi)
-        db /= self.config.bearing_sigma_rad
+        db = wrap1(float(z[1]) - (math.atan2(ey, ex) - th)) / self.config.bearing_sigma_rad
         return dr * dr + db * db <= self._gate
 
     def _associate(self, t: float, z: np.ndarray) -> None:
