@@ -54,8 +54,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from control.base import ControlInput, Controller
-from control.perception import distance_ahead, to_walker_frame, turn_direction
+from control.perception import distance_ahead, turn_direction
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import to_walker_frame
 from hardware.messages import BrakeCommand
 from hardware.registry import Spec
 

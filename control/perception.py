@@ -12,13 +12,6 @@ from dataclasses import dataclass
 import numpy as np
 
 
-def to_walker_frame(points_xy: np.ndarray, pose: np.ndarray) -> np.ndarray:
-    """World points → walker frame (x forward, y left) of `pose`."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    d = np.asarray(points_xy, dtype=float).reshape(-1, 2) - pose[:2]
-    return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
-
-
 def front_distance(
     points_walker: np.ndarray, reference_x: float, half_width: float, max_range: float
 ) -> float:

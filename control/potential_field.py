@@ -32,8 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from control.base import ControlInput, Controller
-from control.perception import to_walker_frame
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import to_walker_frame
 from hardware.messages import BrakeCommand
 from hardware.registry import Spec
 

@@ -88,6 +88,14 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.column_stack([(c * x - s * y) + pose[0], (s * x + c * y) + pose[1]])
 
 
+def to_walker_frame(points_xy: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """World points (N×2) in the frame of `pose` (x forward, y left): the inverse of
+    transform_points, with math's cos and sin."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    d = np.asarray(points_xy, dtype=float).reshape(-1, 2) - pose[:2]
+    return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+
+
 def rotation(theta: float, size: int = 2) -> np.ndarray:
     """The matrix that rotates (x, y) by theta: 2×2, or with size 3 a pose's (x, y, θ)
     with θ left as it is (e.g. a pose covariance from a body frame to the world's,

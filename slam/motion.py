@@ -177,8 +177,7 @@ def propagate(
     n12 = p12 + b * p22
     # G for the exact arc, written out (see increment_jacobians)
     half = 0.5 * dtheta
-    s = math.sin(half) / half if abs(half) > 1e-4 else 1.0 - half * half / 6.0
-    sp = (half * math.cos(half) - math.sin(half)) / half**2 if abs(half) > 1e-4 else -half / 3.0
+    s, sp = _sinc_and_derivative(half)
     chord, dchord = ds * s, 0.5 * ds * sp
     h = th + half
     c, sn = math.cos(h), math.sin(h)

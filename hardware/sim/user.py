@@ -23,6 +23,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numba import njit
 
+from hardware.geometry import to_walker_frame
 from hardware.sim.dynamics import WalkerParams, WalkerState
 from hardware.sim.user_vision import (
     Footprints,
@@ -375,15 +376,10 @@ class RouteFollower:
             px, py = px + self._offset * -ty, py + self._offset * tx
         return self._point_to_walker(px, py), remaining
 
-    def _to_walker(self, xy: np.ndarray) -> np.ndarray:
-        """World points in the walker frame as the user believes it."""
-        c, s = math.cos(self.belief[2]), math.sin(self.belief[2])
-        rel = xy - self.belief[:2]
-        return np.column_stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]])
-
     def _point_to_walker(self, x: float, y: float) -> tuple[float, float]:
-        """One world point in the walker frame as the user believes it (as _to_walker,
-        the same arithmetic, without the arrays: it runs every physics step)."""
+        """One world point in the walker frame as the user believes it (as
+        hardware.geometry.to_walker_frame at the belief, the same arithmetic, without the
+        arrays: it runs every physics step)."""
         bx, by, bphi = self.belief.tolist()
         c, s = math.cos(bphi), math.sin(bphi)
         rx, ry = x - bx, y - by
@@ -403,7 +399,8 @@ class RouteFollower:
         if len(pts) == 0 or len(ahead) < 2:
             self._offset, self._free = 0.0, math.inf
             return
-        along, across = route_coordinates(pts, self._to_walker(ahead), ROUTE_PLAN_SPACING_M)
+        ahead = to_walker_frame(ahead, self.belief)
+        along, across = route_coordinates(pts, ahead, ROUTE_PLAN_SPACING_M)
         chosen, first = choose_offset(along, across, vp.corridor_half_width_m, self.p.gap_margin_m)
         self._offset = chosen
         self._free = max(first - vp.nose_m, 0.0)

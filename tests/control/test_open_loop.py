@@ -7,8 +7,9 @@ import pytest
 
 from control.base import CONTROLLERS, ControlInput, create
 from control.open_loop import OpenLoopConfig, open_loop_level
-from control.perception import choose_turn, front_distance, to_walker_frame
+from control.perception import choose_turn, front_distance
 from hardware.calibration import WalkerCalibration
+from hardware.geometry import to_walker_frame
 
 CAL = WalkerCalibration()
 OFF, FULL = CAL.brake.torque_off_nm, CAL.brake.torque_max_nm
