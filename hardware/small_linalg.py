@@ -57,26 +57,28 @@ def inv(a: np.ndarray) -> np.ndarray:
     """The inverse of a 1×1, 2×2 or 3×3 matrix (adjugate over determinant); raises
     np.linalg.LinAlgError when it is singular."""
     a = np.asarray(a, dtype=float)
-    n = a.shape[0]
-    if n == 1:
-        adj, det = np.ones((1, 1)), a[0, 0]
-    elif n == 2:
-        adj = np.array([[a[1, 1], -a[0, 1]], [-a[1, 0], a[0, 0]]])
-        det = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
-    elif n == 3:
-        adj = np.empty((3, 3))
-        for i in range(3):
-            for j in range(3):
-                r = [k for k in range(3) if k != j]
-                c = [k for k in range(3) if k != i]
-                minor = a[r[0], c[0]] * a[r[1], c[1]] - a[r[0], c[1]] * a[r[1], c[0]]
-                adj[i, j] = minor if (i + j) % 2 == 0 else -minor
-        det = a[0, 0] * adj[0, 0] + a[0, 1] * adj[1, 0] + a[0, 2] * adj[2, 0]
-    else:
+    if a.shape not in ((1, 1), (2, 2), (3, 3)):
         raise ValueError(f"inv takes 1×1 to 3×3 matrices, got {a.shape}")
+    m = a.tolist()  # Python floats: the same IEEE operations as on numpy's, ~10× cheaper
+    n = len(m)
+    if n == 1:
+        adj, det = [[1.0]], m[0][0]
+    elif n == 2:
+        adj = [[m[1][1], -m[0][1]], [-m[1][0], m[0][0]]]
+        det = m[0][0] * m[1][1] - m[0][1] * m[1][0]
+    else:
+        adj = [[0.0] * 3 for _ in range(3)]
+        for i, c in enumerate(_OTHERS):
+            for j, r in enumerate(_OTHERS):
+                minor = m[r[0]][c[0]] * m[r[1]][c[1]] - m[r[0]][c[1]] * m[r[1]][c[0]]
+                adj[i][j] = minor if (i + j) % 2 == 0 else -minor
+        det = m[0][0] * adj[0][0] + m[0][1] * adj[1][0] + m[0][2] * adj[2][0]
     if det == 0.0 or not math.isfinite(det):
         raise np.linalg.LinAlgError("singular matrix")
-    return adj / det
+    return np.array(adj) / det
+
+
+_OTHERS = ((1, 2), (0, 2), (0, 1))  # the rows (columns) of a 3×3 matrix other than 0, 1, 2
 
 
 def solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
