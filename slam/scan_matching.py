@@ -9,9 +9,11 @@ centroid), so near and far surfaces weigh alike.
 
 A *reference* (one scan, or several scans placed in one frame: a local submap) is
 prepared once: a k-d tree (`scipy.spatial.cKDTree`), a surface normal per point from
-the principal axes of its neighbours (points on a line), and, for the correlative
-search, a likelihood field: exp(−d²/2σ²) of the distance d to the nearest reference
-point on a `grid_m` grid (mapping.distance, exact).
+the principal axes of its neighbours (points on a line), for ICP its points sorted into
+cells as wide as the correspondence gate (`Reference.buckets`: its compiled loop,
+slam.scan_kernels.icp_steps, finds the nearest point within the gate there), and, for
+the correlative search, a likelihood field: exp(−d²/2σ²) of the distance d to the
+nearest reference point on a `grid_m` grid (mapping.distance, exact).
 
 `match(reference, query, guess, window)` finds the pose of the query scan's frame in the
 reference frame:
@@ -63,11 +65,11 @@ from scipy.spatial import cKDTree
 from hardware.calibration import WalkerCalibration
 from hardware.geometry import transform_points, wrap_angle
 from hardware.messages import DepthFrame, LaserScan
-from hardware.small_linalg import dot, eigh2, eigvalsh3, gram, inv, matvec, solve
+from hardware.small_linalg import dot, eigh2, eigvalsh3, gram, inv, matvec
 from mapping.depth_points import DepthConfig, project_depth_frame
 from mapping.distance import squared_distances
 from mapping.scan_points import ScanConfig, scan_to_observation
-from slam.scan_kernels import grid_scores
+from slam.scan_kernels import buckets, grid_scores, icp_steps
 
 FREE_BIN_RAD = math.radians(0.5)  # angular bins of a scan's free-space polygon
 
@@ -323,6 +325,7 @@ class Reference:
         self.tree = cKDTree(self.points) if len(self.points) else None
         self.normals, self.has_normal = self._normals()
         self._field: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
+        self._buckets: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def __len__(self) -> int:
         return len(self.points)
@@ -356,6 +359,13 @@ class Reference:
         with np.errstate(invalid="ignore", divide="ignore"):
             ok = (cnt >= 3) & (lmax > 0) & (lmin <= cfg.max_planarity * lmax)
         return normals, ok
+
+    def buckets(self, gate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The points sorted by grid cells of side `gate`, for ICP's nearest neighbours
+        within the gate (slam.scan_kernels.buckets), built once per gate."""
+        if gate not in self._buckets:
+            self._buckets[gate] = buckets(self.points, gate)
+        return self._buckets[gate]
 
     def field(self) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
         """(score grid (H×W), origin (x, y) of cell (0, 0), resolution, conflict mask).
@@ -470,30 +480,11 @@ def icp(
     nan = np.full((3, 3), np.nan)
     if len(query) < cfg.min_points or len(ref) < cfg.min_points:
         return MatchResult(x, nan, 0.0, 0, len(query), math.nan, 0, False)
-    converged = False
-    it = 0
-    for it in range(1, cfg.icp_iterations + 1):  # noqa: B007 - the count is reported
-        q = transform_points(x, query)
-        _, idx, ok = _associate(ref, q, cfg.max_correspondence_m)
-        if ok.sum() < cfg.min_points:
-            break
-        r, jac = _residuals(ref, q[ok], x[:2], idx[ok])
-        a = np.abs(r)
-        w = np.where(a <= cfg.huber_m, 1.0, cfg.huber_m / np.maximum(a, 1e-12))
-        h = gram(jac, w)
-        g = np.einsum("ni,n->i", jac, w * r)
-        try:
-            step = -solve(h + 1e-9 * np.eye(3), g)
-        except np.linalg.LinAlgError:
-            break
-        x = x + step
-        x[2] = wrap_angle(x[2])
-        if (
-            math.hypot(step[0], step[1]) < cfg.icp_tolerance[0]
-            and abs(step[2]) < cfg.icp_tolerance[1]
-        ):
-            converged = True
-            break
+    it, converged = icp_steps(
+        ref.points, ref.normals, ref.has_normal, *ref.buckets(cfg.max_correspondence_m),
+        np.ascontiguousarray(query, dtype=float), x, cfg.max_correspondence_m, cfg.huber_m,
+        cfg.icp_iterations, cfg.icp_tolerance[0], cfg.icp_tolerance[1], cfg.min_points,
+    )  # fmt: skip
     return _evaluate(ref, query, x, cfg, it, converged)
 
 
