@@ -58,7 +58,10 @@ def grid_scores(
 def buckets(points: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The points (M, 2) sorted by the grid cell (of side `cell`) they fall in, for
     `nearest`: (order (M,): point indices by cell, starts (H·W + 1,): where each cell's
-    run begins in order, (x0, y0, cell, W, H) as floats: the grid)."""
+    run begins in order, (x0, y0, cell, W, H) as floats: the grid). The cells are made
+    wider when the points' extent would need more than 1024 of them a side (a small
+    gate over a building): `nearest` only needs them at least as wide as the gate."""
+    cell = max(cell, float(np.ptp(points, axis=0).max()) / 1024.0)
     lo = points.min(axis=0) - cell
     ij = np.floor((points - lo) / cell).astype(np.int64)
     w, h = int(ij[:, 0].max()) + 2, int(ij[:, 1].max()) + 2

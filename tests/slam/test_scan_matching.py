@@ -338,6 +338,14 @@ def test_bucketed_nearest_neighbour_is_the_k_d_trees_within_the_gate():
         d, idx = cKDTree(pts).query(q, distance_upper_bound=gate)
         got = np.array([nearest(pts, order, starts, grid, x, y, gate * gate) for x, y in q])
         np.testing.assert_array_equal(got, np.where(np.isfinite(d), idx, -1))
+    # a gate small against the extent: wider cells, the same answers
+    pts = rng.uniform(-500, 500, (2000, 2))
+    order, starts, grid = buckets(pts, 0.01)
+    assert grid[2] > 0.9 and grid[3] * grid[4] < 1100**2
+    q = pts[:50] + rng.normal(0, 0.004, (50, 2))
+    d, idx = cKDTree(pts).query(q, distance_upper_bound=0.01)
+    got = [nearest(pts, order, starts, grid, x, y, 1e-4) for x, y in q]
+    np.testing.assert_array_equal(got, np.where(np.isfinite(d), idx, -1))
 
 
 def _numpy_icp(ref: Reference, query: np.ndarray, x: np.ndarray, cfg: ScanMatchConfig):
