@@ -1227,11 +1227,7 @@ class GtsamSmoother(Localizer):
             wide, np.concatenate([sc.points for sc in local]), res.pose, 0.0, 0.0, self._matcher
         )
         d = relative_guess(res.pose, check.pose)
-        if not (
-            pl.gate.accepts(check)
-            and math.hypot(d[0], d[1]) <= 0.2
-            and abs(d[2]) <= math.radians(3.0)
-        ):
+        if not (pl.gate.accepts(check) and _places_agree(d)):
             return False
         agreeing = self._place_doubt(poses, i, res)
         if agreeing is None:
@@ -1264,7 +1260,7 @@ class GtsamSmoother(Localizer):
         agreeing = []
         for k, h in self._place_doubts:
             d = relative_guess(moved, compose(h.correction, here))
-            if k < search and math.hypot(d[0], d[1]) <= 0.2 and abs(d[2]) <= math.radians(3.0):
+            if k < search and _places_agree(d):
                 agreeing.append(h)
         if agreeing:
             self._place_doubts = [(k, h) for k, h in self._place_doubts if h not in agreeing]
@@ -1433,3 +1429,10 @@ SPEC = Spec(
     GtsamSmoother,
     "iSAM2 smoother over keyframes and landmarks (BetweenFactorPose2, BearingRangeFactor2D)",
 )
+
+
+def _places_agree(d: np.ndarray) -> bool:
+    """Whether two placements of one scan differ by at most 0.2 m and 3° (d: the one in
+    the other's frame): a place match's verification, and a held one's confirmation
+    (PlaceRecognition)."""
+    return math.hypot(d[0], d[1]) <= 0.2 and abs(d[2]) <= math.radians(3.0)
