@@ -68,6 +68,7 @@ class DeviceStats:
     stalled: set[str] = field(default_factory=set)  # streams ("*": the whole device)
     ended: bool = False
     max_queued: int = 0  # most messages waiting in its queue at once
+    max_frames_queued: dict[str, int] = field(default_factory=dict)  # per droppable kind
     recent: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
 
     def rate_hz(self, now: float, window_s: float = 1.0) -> float:
@@ -80,6 +81,7 @@ class DeviceStats:
             self,
             by_type=dict(self.by_type),
             dropped_by_type=dict(self.dropped_by_type),
+            max_frames_queued=dict(self.max_frames_queued),
             last_by_type=dict(self.last_by_type),
             stalled=set(self.stalled),
             recent=deque(self.recent, maxlen=self.recent.maxlen),
@@ -230,13 +232,15 @@ class LiveSources:
         s = d.stats
         now = self.clock.now()
         if isinstance(msg, DROPPABLE):
+            kind = type(msg).__name__
             same = [m for m in d.queue if type(m) is type(msg)]
             if len(same) >= self.max_frames:
-                d.queue.remove(same[0])  # the oldest of its kind
-                self._arrivals.pop(id(same[0]), None)
+                oldest = same.pop(0)
+                d.queue.remove(oldest)
+                self._arrivals.pop(id(oldest), None)
                 s.dropped += 1
-                kind = type(msg).__name__
                 s.dropped_by_type[kind] = s.dropped_by_type.get(kind, 0) + 1
+            s.max_frames_queued[kind] = max(s.max_frames_queued.get(kind, 0), len(same) + 1)
         d.queue.append(msg)
         s.max_queued = max(s.max_queued, len(d.queue))
         if isinstance(msg, DROPPABLE[:2]):
