@@ -206,9 +206,10 @@ def test_faults_unplug_garbage_reset_and_a_camera_stall(tmp_path, board):
     # nor does the pose: counts not re-based would jump it by the metres walked so far
     # (~3 m at the unplug, ~6 m at the reset). A step is ~1 cm (1 m/s, 100 Hz), but on a
     # busy host simavr's board can fall behind the world, which runs in real time, and
-    # one report then carries the wheels' motion of several (0.6 m seen under load)
+    # one report then carries the wheels' motion of several (0.6 m seen under load), so
+    # the bound is 2 m: still below the jump of counts not re-based
     poses = res.pipeline.localizer.trajectory().poses
-    assert np.hypot(*np.diff(poses[:, :2], axis=0).T).max() < 1.0
+    assert np.hypot(*np.diff(poses[:, :2], axis=0).T).max() < 2.0
     # the camera stall: the safety layer ramps the brakes to the residual torque after
     # the stale limit (0.3 s) over its ramp (0.5 s), and the status says why
     off = res.pipeline.calibration.brake.torque_off_nm
