@@ -128,7 +128,8 @@ def capped_squared_distances(targets: np.ndarray, cap: int) -> np.ndarray:
     for i in range(ny):
         row = col[i]
         best = out[i]
-        best[:] = row[cap : cap + nx]
+        for x in range(nx):
+            best[x] = row[cap + x]
         for dq in range(1, cap):
             dd = dq * dq
             left = row[cap - dq : cap - dq + nx]

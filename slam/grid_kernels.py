@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 from mapping.distance import capped_squared_distances
-from slam.kernel_math import wrap
+from slam.kernel_math import copy_into, copy_vector, wrap
 from slam.scan_proposal import fit_one
 
 
@@ -216,7 +216,7 @@ def hill_climb(
         for move in range(6):
             if move == back:
                 continue
-            trial[:] = pose
+            copy_vector(trial, pose)
             if move == 0:
                 trial[0] += c * step_xy
                 trial[1] += s * step_xy
@@ -244,10 +244,10 @@ def hill_climb(
             )
             if score > best_score:
                 best_score, best_matched, improved = score, m, True
-                best_pose[:] = trial
+                copy_vector(best_pose, trial)
                 taken = move
         if improved:
-            pose[:] = best_pose
+            copy_vector(pose, best_pose)
             best, matched = best_score, best_matched
             back = taken ^ 1  # forward <-> back, left <-> right, turn left <-> right
         else:
@@ -324,8 +324,8 @@ def propose(
             2.0 * math.pi
         )
     else:
-        mean[:] = start
-        cov[:, :] = prior_cov
+        copy_vector(mean, start)
+        copy_into(cov, prior_cov)
     pose = draw(mean, cov, e)
     if best_matched < min_points:
         log_w = (

@@ -272,16 +272,23 @@ def bridge_covariances(means, deltas, delta_covs, anchor, covs) -> None:
         dx, dy = deltas[j, 0], deltas[j, 1]
         fa = -s * dx - c * dy
         fb = c * dx - s * dy
-        prev = covs[j - 1]
-        # F P Fᵀ with F = I + e0 fa e2ᵀ + e1 fb e2ᵀ
-        m = prev.copy()
+        prev, cov, q = covs[j - 1], covs[j], delta_covs[j]
+        # F P Fᵀ with F = I + e0 fa e2ᵀ + e1 fb e2ᵀ, plus R q Rᵀ, written out element by
+        # element (numba's `@` brings BLAS, and an array assigned to a slice takes ~5 s
+        # to compile)
         for col in range(3):
-            m[0, col] += fa * prev[2, col]
-            m[1, col] += fb * prev[2, col]
-        out = m.copy()
+            cov[0, col] = prev[0, col] + fa * prev[2, col]
+            cov[1, col] = prev[1, col] + fb * prev[2, col]
+            cov[2, col] = prev[2, col]
         for row in range(3):
-            out[row, 0] += m[row, 2] * fa
-            out[row, 1] += m[row, 2] * fb
-        q = delta_covs[j]
-        r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        covs[j, :, :] = out + r @ q @ r.T
+            cov[row, 0] += cov[row, 2] * fa
+            cov[row, 1] += cov[row, 2] * fb
+        rq = np.empty((3, 3))
+        for col in range(3):
+            rq[0, col] = c * q[0, col] - s * q[1, col]
+            rq[1, col] = s * q[0, col] + c * q[1, col]
+            rq[2, col] = q[2, col]
+        for row in range(3):
+            cov[row, 0] += rq[row, 0] * c - rq[row, 1] * s
+            cov[row, 1] += rq[row, 0] * s + rq[row, 1] * c
+            cov[row, 2] += rq[row, 2]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from slam.rts import arc_steps, rts_smooth
-from slam.state_smoother import StateSmoother, bridge
+from slam.state_smoother import StateSmoother, bridge, bridge_covariances
 
 
 def _linear_slam(seed: int):
@@ -127,6 +127,37 @@ def test_bridge_keeps_the_epochs_poses_and_moves_the_stretches_rigidly():
     )
     out = rts_smooth(means, bcovs, deltas, delta_covs)
     np.testing.assert_allclose(out[[5, 17]], smoothed[[1, 2]], atol=1e-6)
+
+
+def test_bridged_covariances_are_the_odometry_propagation_written_in_matrices():
+    """The compiled bridge (written out element by element) equals F P Fᵀ + R q Rᵀ
+    in numpy, F the Jacobian of the composition by the pose and R the rotation by the
+    previous heading; zero at the anchor, untouched before it."""
+    rng = np.random.default_rng(11)
+    k = 12
+    means = rng.normal(0, 1, (k, 3))
+    deltas = rng.normal(0, 0.2, (k, 3))
+    a = rng.normal(0, 0.1, (k, 3, 3))
+    delta_covs = a @ np.transpose(a, (0, 2, 1))
+    covs = np.tile(np.eye(3), (k, 1, 1))
+    anchor = np.zeros(k, dtype=np.bool_)
+    anchor[[3, 8]] = True
+    out = covs.copy()
+    bridge_covariances(means, deltas, delta_covs, anchor, out)
+    np.testing.assert_array_equal(out[:3], covs[:3])
+    expect = np.zeros((3, 3))
+    for j in range(3, k):
+        if anchor[j]:
+            expect = np.zeros((3, 3))
+        else:
+            th = means[j - 1, 2]
+            c, s = np.cos(th), np.sin(th)
+            dx, dy = deltas[j, :2]
+            f = np.eye(3)
+            f[0, 2], f[1, 2] = -s * dx - c * dy, c * dx - s * dy
+            r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            expect = f @ expect @ f.T + r @ delta_covs[j] @ r.T
+        np.testing.assert_allclose(out[j], expect, rtol=1e-13, atol=1e-15)
 
 
 def test_over_its_memory_budget_the_pose_alone_is_smoothed_and_it_says_so():
