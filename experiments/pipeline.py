@@ -171,7 +171,7 @@ class Pipeline:
             self.mapper.reset()
         factor = h.decay_factor(t)
         if factor < 1.0:
-            self.mapper.grid.decay(factor)
+            self.mapper.decay(factor)
         return h.admit(t, estimate.pose, estimate.covariance)
 
     def rebuild_map(self, background: bool = False) -> bool:

@@ -141,15 +141,29 @@ class OccupancyMapper:
         self._views: dict[CameraIntrinsics, ViewWedge] = {}  # per depth stream, built once
         q = self.config.point_quantum_m
         self._quantum = self.config.grid.resolution_m / 4.0 if q is None else q
+        # occupied_xy by threshold, until the map changes: a closed loop asks for it at
+        # every control step, several times per frame
+        self._occupied: dict[float | None, np.ndarray] = {}
 
     @property
     def grid(self) -> GridExtent:
-        """The current map (an OccupancyGrid or a ViewCountGrid, after config.grid.model)."""
+        """The current map (an OccupancyGrid or a ViewCountGrid, after config.grid.model),
+        to read: it changes through the mapper's methods, which keep occupied_xy current."""
         return self._grid
 
     def occupied_xy(self, threshold: float | None = None) -> np.ndarray:
-        """World centres (N×2) of the occupied cells (the grid's default threshold)."""
-        return self._grid.occupied_xy(threshold)
+        """World centres (N×2, read-only) of the occupied cells (the grid's default
+        threshold); computed once per change of the map."""
+        xy = self._occupied.get(threshold)
+        if xy is None:
+            xy = self._occupied[threshold] = self._grid.occupied_xy(threshold)
+            xy.setflags(write=False)
+        return xy
+
+    def decay(self, factor: float) -> None:
+        """Fade the map's evidence by `factor` (mapping.hygiene)."""
+        self._grid.decay(factor)
+        self._occupied.clear()
 
     def project(
         self,
@@ -222,6 +236,7 @@ class OccupancyMapper:
             if limit is not None and len(self._keyframes) > limit:
                 del self._keyframes[next(iter(self._keyframes))]
         self._grid.integrate_at(obs, pose, centre_xy=pose[:2])
+        self._occupied.clear()
 
     def rebuild(self, poses: Mapping[Hashable, np.ndarray] | None = None) -> None:
         """Re-create the map from the kept keyframes, in the order they were kept.
@@ -237,6 +252,7 @@ class OccupancyMapper:
         for key, pose in revised.items():
             self._keyframes[key] = _Keyframe(self._keyframes[key].obs, pose)
         self._grid.reset()
+        self._occupied.clear()
         for kf in self._keyframes.values():
             self._grid.integrate_at(kf.obs, kf.pose, centre_xy=kf.pose[:2])
 
@@ -273,6 +289,7 @@ class OccupancyMapper:
             if key not in done:
                 job.grid.integrate_at(kf.obs, kf.pose, centre_xy=kf.pose[:2])
         self._grid = job.grid
+        self._occupied.clear()
 
     def keys(self) -> Iterator[Hashable]:
         """Keys of the kept keyframes, oldest first."""
@@ -294,4 +311,5 @@ class OccupancyMapper:
     def reset(self) -> None:
         """Empty map, no keyframes."""
         self._grid.reset()
+        self._occupied.clear()
         self._keyframes.clear()

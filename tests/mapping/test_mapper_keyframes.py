@@ -216,3 +216,39 @@ def test_a_background_rebuild_gives_the_map_a_rebuild_would():
     assert len(sync.occupied_xy()) > 50
     for i in range(20):
         np.testing.assert_array_equal(bg.keyframe_pose(i), sync.keyframe_pose(i))
+
+
+def test_occupied_cells_follow_every_change_of_the_map():
+    """occupied_xy is computed once per change of the map (a closed loop asks at every
+    control step) and is the grid's own after each kind of change; it is read-only, so
+    a caller cannot change what the next caller gets."""
+    rng = np.random.default_rng(4)
+    frames = room_frames()
+    mapper = OccupancyMapper(CAL)
+
+    def check() -> np.ndarray:
+        xy = mapper.occupied_xy()
+        np.testing.assert_array_equal(xy, mapper.grid.occupied_xy())
+        assert mapper.occupied_xy() is xy and not xy.flags.writeable
+        np.testing.assert_array_equal(mapper.occupied_xy(0.9), mapper.grid.occupied_xy(0.9))
+        return xy
+
+    assert len(check()) == 0
+    for k, (f, pose) in enumerate(zip(frames[:3], TRUE_POSES, strict=False)):
+        before = len(check())
+        mapper.integrate_depth(f, pose, key=k)
+        assert len(check()) > before  # each frame adds the walls it sees
+    with pytest.raises(ValueError):
+        mapper.occupied_xy()[0, 0] = 0.0
+    moved = check()
+    mapper.rebuild({k: TRUE_POSES[k] + rng.normal(0.0, 0.2, 3) for k in range(3)})
+    assert not np.array_equal(check(), moved)
+    faded = len(check())
+    mapper.decay(0.1)
+    assert len(check()) < faded
+    mapper.integrate_depth(frames[3], TRUE_POSES[3], key=3)
+    job = mapper.start_rebuild({k: TRUE_POSES[k] for k in range(4)})
+    mapper.finish_rebuild(job)
+    check()
+    mapper.reset()
+    assert len(check()) == 0
