@@ -30,6 +30,21 @@ def test_wrap_angle_range():
     assert wrap_angle(-np.pi) == pytest.approx(np.pi)
 
 
+def test_wrap_angle_of_a_large_array_has_the_bits_of_the_formula():
+    """Large arrays skip the mod where it changes nothing: every bit is still that of
+    π − ((π − a) mod 2π), at the edges of the range and beyond it too."""
+    rng = np.random.default_rng(8)
+    edges = [np.pi, -np.pi, 0.0, -0.0, 2 * np.pi, -2 * np.pi, 3 * np.pi, 1e20, -1e20]
+    edges += [np.nextafter(np.pi, 4.0), np.nextafter(-np.pi, -4.0), np.inf, -np.inf, np.nan]
+    for a in (rng.normal(0.0, 3.0, 5000), rng.uniform(-np.pi, np.pi, (40, 60)), edges * 300):
+        a = np.asarray(a, dtype=float)
+        with np.errstate(invalid="ignore"):
+            want = np.pi - np.mod(np.pi - a, 2.0 * np.pi)
+            got = wrap_angle(a)
+        assert got.shape == a.shape
+        np.testing.assert_array_equal(got.view(np.int64), want.view(np.int64))
+
+
 def test_compose_inverse_is_identity():
     rng = np.random.default_rng(0)
     p = random_poses(rng, 100)
