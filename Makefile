@@ -55,10 +55,10 @@ demo: install
 TEST_ENV = PYTHONDONTWRITEBYTECODE=
 
 test: install-live firmware
-	$(TEST_ENV) $(PY) -m pytest -q -n auto --dist loadgroup --durations=25
+	$(TEST_ENV) $(PY) -m pytest -q -n auto --durations=25
 
 test-fast: install-live firmware
-	$(TEST_ENV) $(PY) -m pytest -q -n auto --dist loadgroup -m "not slow"
+	$(TEST_ENV) $(PY) -m pytest -q -n auto -m "not slow"
 
 bench: install-live firmware
 	$(PY) benchmarks/run_all.py

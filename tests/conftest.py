@@ -18,14 +18,3 @@ def course_trial(tmp_path_factory) -> Path:
         "thesis-course", path, controller="open-loop", surface="dusty", seed=2, duration_s=300.0
     )
     return path
-
-
-@pytest.fixture(scope="session")
-def ray_cluster():
-    """One local Ray instance (two CPUs) for the tests that run studies on Ray: starting
-    one takes ~10 s. Those tests share the xdist group "ray", so that they run in one
-    worker (`make test` distributes with --dist loadgroup)."""
-    ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
