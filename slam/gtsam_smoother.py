@@ -1257,13 +1257,15 @@ class GtsamSmoother(Localizer):
         ]
         fix = correction(poses[cand.kf], res.pose, here)
         moved = compose(fix, here)
-        agreeing = []
+        agreeing, kept = [], []
         for k, h in self._place_doubts:
             d = relative_guess(moved, compose(h.correction, here))
             if k < search and _places_agree(d):
                 agreeing.append(h)
+            else:
+                kept.append((k, h))
         if agreeing:
-            self._place_doubts = [(k, h) for k, h in self._place_doubts if h not in agreeing]
+            self._place_doubts = kept
             return agreeing
         self._place_doubts.append(
             (search, HeldMatch(i, len(self._scans) - 1, cand.kf, cur.kf, res, fix))

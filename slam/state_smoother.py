@@ -260,6 +260,7 @@ def bridge_covariances(means, deltas, delta_covs, anchor, covs) -> None:
     Jacobian of means[j−1] ⊕ deltas[j] by the pose, R the rotation by means[j−1]'s
     heading, q_j = delta_covs[j]; the steps before the first anchor keep theirs."""
     started = False
+    rq = np.empty((3, 3))  # R q, per step
     for j in range(len(means)):
         if anchor[j]:
             started = True
@@ -283,7 +284,6 @@ def bridge_covariances(means, deltas, delta_covs, anchor, covs) -> None:
         for row in range(3):
             cov[row, 0] += cov[row, 2] * fa
             cov[row, 1] += cov[row, 2] * fb
-        rq = np.empty((3, 3))
         for col in range(3):
             rq[0, col] = c * q[0, col] - s * q[1, col]
             rq[1, col] = s * q[0, col] + c * q[1, col]
