@@ -167,18 +167,13 @@ def test_bad_input_is_one_line(tmp_path):
 
 
 @pytest.mark.slow
-def test_ray_engine_gives_the_same_results_as_local(tiny_study, tmp_path):
+def test_ray_engine_gives_the_same_results_as_local(tiny_study, tmp_path, local_ray):
     """One cell of the tiny study (open-loop: its two users) on Ray: the same rows as the
     in-process run's for that cell (a run's numbers depend on its cell and trial only)."""
-    ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        study = CourseStudy(
-            controllers=("open-loop",), trials=2, duration_s=12.0, seed=5, keep_logs=False
-        )
-        res = run_course_study(study, tmp_path, engine="ray", workers=2)
-    finally:
-        ray.shutdown()
+    study = CourseStudy(
+        controllers=("open-loop",), trials=2, duration_s=12.0, seed=5, keep_logs=False
+    )
+    res = run_course_study(study, tmp_path, engine="ray", workers=2)
     remote, _ = db_rows(tmp_path / "results.db")
     local = [r for r in db_rows(tiny_study[0] / "results.db")[0] if r["cell"] == remote[0]["cell"]]
     assert len(remote) == len(local) == len(res.rows) == 2

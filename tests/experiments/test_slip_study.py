@@ -120,23 +120,18 @@ def test_bad_input_is_one_line(tmp_path):
 
 
 @pytest.mark.slow
-def test_ray_engine_gives_the_same_results_as_local(tiny_study, tmp_path):
+def test_ray_engine_gives_the_same_results_as_local(tiny_study, tmp_path, local_ray):
     """One cell of the tiny study (dusty, gyro: its two users) on Ray: the same rows as
     the in-process run's for that cell (a run's numbers depend on its cell and trial only)."""
-    ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        study = SlipStudy(
-            surfaces=("dusty",),
-            mitigations=(("gyro",),),
-            trials=2,
-            duration_s=20.0,
-            seed=7,
-            keep_logs=False,
-        )
-        run_slip_study(study, tmp_path, engine="ray", workers=2)
-    finally:
-        ray.shutdown()
+    study = SlipStudy(
+        surfaces=("dusty",),
+        mitigations=(("gyro",),),
+        trials=2,
+        duration_s=20.0,
+        seed=7,
+        keep_logs=False,
+    )
+    run_slip_study(study, tmp_path, engine="ray", workers=2)
     remote = db_rows(tmp_path / "results.db")
     local = [r for r in db_rows(tiny_study[0] / "results.db") if r["cell"] == remote[0]["cell"]]
     skip = {"id", "wall_time_s", "replay_realtime_factor", "log", "config"}
