@@ -2,6 +2,7 @@
 Figs 6.5–6.8), on a tiny sweep of the open-loop controller's d_max."""
 
 import json
+import os
 import sqlite3
 
 import numpy as np
@@ -126,3 +127,16 @@ def test_local_process_pool_matches_in_process(tmp_path):
         ma = {k: v for k, v in a["metrics"].items() if k != "wall_time_s"}
         mb = {k: v for k, v in b["metrics"].items() if k != "wall_time_s"}
         assert ma == mb
+
+
+@pytest.mark.slow
+def test_ray_engine_runs_its_local_workers_at_this_process_priority():
+    """The local Ray instance's workers run at the caller's niceness, as the process
+    pool's do (Ray's default is 15: beside other busy processes such a worker gets a few
+    per cent of a core). (A local function: Ray sends it by value.)"""
+    pytest.importorskip("ray")
+
+    def niceness(_: int) -> int:
+        return os.nice(0)
+
+    assert run_tasks(niceness, [0, 1], engine="ray", workers=2) == [os.nice(0)] * 2

@@ -120,7 +120,7 @@ def test_bad_input_is_one_line(tmp_path):
 
 
 @pytest.mark.slow
-def test_ray_engine_gives_the_same_results_as_local(tiny_study, tmp_path, local_ray):
+def test_ray_engine_gives_the_same_results_as_local(tiny_study, tmp_path):
     """One cell of the tiny study (dusty, gyro: its two users) on Ray: the same rows as
     the in-process run's for that cell (a run's numbers depend on its cell and trial only)."""
     study = SlipStudy(
