@@ -56,7 +56,8 @@ TEST_ENV = PYTHONDONTWRITEBYTECODE=
 # One test worker per core and one more: the live tests pace the simulated walker in real
 # time and leave part of their core idle (the fault test: 21 s of CPU in 30 s), as do the
 # tests that wait on the CLI's processes. On 2 cores the suite took 338 s with 2 workers
-# and 288 s with 3; with two busy loops beside it, 645 s against 513 s (BENCHMARKS.md).
+# and 288 s with 3; with two busy loops beside it, 645 s against 513 s; fresh clones (a
+# cold numba cache, which each worker compiles) within their spread (BENCHMARKS.md).
 TEST_WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
 
 test: install-live firmware
