@@ -66,7 +66,7 @@ from slam.particle_paths import ParticlePaths, path_end
 from slam.scan_matching import Reference
 from slam.scan_matching import match as scan_match
 from slam.scan_proposal import ProposalLattice
-from slam.trajectory import Trajectory
+from slam.trajectory import Trajectory, spread_corrections
 
 
 @dataclass(frozen=True)
@@ -478,15 +478,11 @@ class GridRbpf(ParticleFilter):
         k = np.searchsorted(c_times, times, side="left")  # the next correction at or after s
         inside = (k < len(c_times)) & (times < c_times[np.minimum(k, len(c_times) - 1)])
         k = k[inside]
-        v_xy = np.interp(times[inside], var[:, 0], var[:, 1])
-        v_th = np.interp(times[inside], var[:, 0], var[:, 2])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            f_xy = np.clip(np.nan_to_num(v_xy / totals[k, 0]), 0.0, 1.0)
-            f_th = np.clip(np.nan_to_num(v_th / totals[k, 1]), 0.0, 1.0)
+        accumulated = np.column_stack(
+            [np.interp(times[inside], var[:, 0], var[:, 1 + a]) for a in range(2)]
+        )
         out = path.copy()
-        out[inside, 0] += f_xy * delta[k, 0]
-        out[inside, 1] += f_xy * delta[k, 1]
-        out[inside, 2] = wrap_angle(out[inside, 2] + f_th * delta[k, 2])
+        out[inside] = spread_corrections(path[inside], delta[k], accumulated, totals[k])
         return out
 
     def particle_maps(self) -> list[GridExtent]:

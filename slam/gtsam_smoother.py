@@ -199,7 +199,7 @@ from slam.scan_matching import (
 )
 from slam.scan_overlap import chosen_by_overlap, footprint, overlap
 from slam.slip import SlipEstimation, increment_with_slip, slip_diagnostics
-from slam.trajectory import Trajectory
+from slam.trajectory import Trajectory, spread_corrections
 
 
 class RobustKernel(Choice):
@@ -560,7 +560,11 @@ class GtsamSmoother(Localizer):
         self._kf_pose = np.array(config.initial_pose, dtype=float)  # its current estimate
         self._delta = np.zeros(3)  # motion since the latest keyframe, in its frame
         self._delta_cov = np.zeros((3, 3))
-        self._records: list[tuple[float, int, np.ndarray]] = []  # (t, keyframe, delta)
+        # (t, keyframe, delta, its odometry variance: x + y, θ), and each keyframe's
+        # motion from the one before with that variance (the trajectory spreads a
+        # keyframe's correction back over it: `trajectory`)
+        self._records: list[tuple[float, int, np.ndarray, tuple[float, float]]] = []
+        self._segments: list[tuple[np.ndarray, tuple[float, float]]] = []
         self._landmarks: set[int] = set()
         self._marginal: np.ndarray | None = None
         self._cache: tuple[int, Trajectory] | None = None
@@ -699,12 +703,21 @@ class GtsamSmoother(Localizer):
         self._note(t)
 
     def _note(self, t: float) -> None:
+        """The pose at t (the latest keyframe and the motion since) into the trajectory; a
+        second note at the same time (a keyframe made at an odometry message's time)
+        replaces the first: the trajectory holds the state after each time's messages."""
         if self._kf < 0:
             return
         if self._records and t <= self._records[-1][0]:
-            return
+            if t < self._records[-1][0]:
+                return
+            self._records.pop()
         self._t = t
-        self._records.append((t, self._kf, self._delta.copy()))
+        self._records.append((t, self._kf, self._delta.copy(), self._variance()))
+
+    def _variance(self) -> tuple[float, float]:
+        """The odometry variance (x + y, θ) accumulated since the latest keyframe."""
+        return self._delta_cov[0, 0] + self._delta_cov[1, 1], self._delta_cov[2, 2]
 
     def _integrate(
         self, ds: float, dth: float, q: np.ndarray, jk: np.ndarray | None = None
@@ -778,6 +791,7 @@ class GtsamSmoother(Localizer):
             self._graph.add(slip_walk_factor(S(self._kf), S(k), max(walk, 1e-6)))
             self._values.insert(S(k), self._k)
             self._delta_jk = np.zeros((3, 2))
+        self._segments.append((self._delta.copy(), self._variance()))
         self._kf = k
         self._kf_t.append(t)
         self._delta = np.zeros(3)
@@ -1366,6 +1380,10 @@ class GtsamSmoother(Localizer):
         return compose(self._kf_pose, self._delta), cov
 
     def trajectory(self) -> Trajectory:
+        """Each recorded time's pose: its keyframe's estimate and the odometry since, with
+        the move the next keyframe's estimate makes to the odometry's prediction of it
+        spread back over the stretch (slam.trajectory.spread_corrections), so that the
+        path between two keyframes joins both instead of jumping at the second."""
         self._place_held()
         if self._cache is not None and self._cache[0] == self.revision:
             return self._cache[1]
@@ -1378,7 +1396,21 @@ class GtsamSmoother(Localizer):
         t = np.array([r[0] for r in self._records])
         which = np.array([r[1] for r in self._records])
         delta = np.array([r[2] for r in self._records])
-        traj = Trajectory(t, compose(kf[which], delta))
+        accumulated = np.array([r[3] for r in self._records])
+        poses = compose(kf[which], delta)
+        if self._segments:
+            # the correction of each stretch k → k + 1: the estimate of k + 1 against
+            # the odometry's motion carried from the estimate of k
+            seg_delta = np.array([d for d, _ in self._segments])
+            totals = np.array([v for _, v in self._segments])
+            correction = kf[1:] - compose(kf[:-1], seg_delta)
+            correction[:, 2] = wrap_angle(correction[:, 2])
+            inner = which < self._kf
+            k = which[inner]
+            poses[inner] = spread_corrections(
+                poses[inner], correction[k], accumulated[inner], totals[k]
+            )
+        traj = Trajectory(t, poses)
         self._cache = (self.revision, traj)
         return traj
 

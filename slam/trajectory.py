@@ -101,3 +101,23 @@ class TrajectoryRecorder:
     def trajectory(self) -> Trajectory:
         poses = np.array(self._poses, dtype=float).reshape(-1, 3)
         return Trajectory(np.array(self._times), poses)
+
+
+def spread_corrections(
+    path: np.ndarray, corrections: np.ndarray, accumulated: np.ndarray, totals: np.ndarray
+) -> np.ndarray:
+    """`path` (N, 3) with the correction each pose is heading towards (N, 3: world x, y,
+    θ; the move that the next observation made to the odometry's prediction) spread
+    back over the odometry that accumulated it: + f·δ, f the odometry variance
+    accumulated by that pose over the stretch's total (N, 2 each: x + y, θ), clipped to
+    [0, 1] and 0 where nothing accumulated. The mean of a random walk's path given its
+    end point (a Brownian bridge), per axis; used by the smoothers that place
+    observations only at some of the times a path is read at (slam.grid_rbpf,
+    slam.gtsam_smoother)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = np.clip(np.nan_to_num(accumulated / totals), 0.0, 1.0)
+    out = path.copy()
+    out[:, 0] += f[:, 0] * corrections[:, 0]
+    out[:, 1] += f[:, 0] * corrections[:, 1]
+    out[:, 2] = wrap_angle(out[:, 2] + f[:, 1] * corrections[:, 2])
+    return out

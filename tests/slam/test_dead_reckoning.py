@@ -186,6 +186,21 @@ def test_trajectory_recorder_keeps_the_newest_pose_per_time():
     assert np.allclose(tr.poses, [[0.0, 0.0, 0.0], [2.0, 0.0, 0.1]])
 
 
+def test_a_correction_is_spread_by_the_variance_accumulated():
+    from slam.trajectory import spread_corrections
+
+    path = np.array([[0.0, 0.0, 3.1], [1.0, 0.0, 3.1], [2.0, 0.0, 3.1], [2.0, 0.0, 3.1]])
+    delta = np.tile([0.4, -0.2, 0.1], (4, 1))
+    accumulated = np.array([[0.0, 0.0], [1.0, 0.5], [2.0, 2.0], [0.0, 0.0]])
+    totals = np.array([[2.0, 2.0], [2.0, 2.0], [2.0, 2.0], [0.0, 0.0]])
+    out = spread_corrections(path, delta, accumulated, totals)
+    assert np.allclose(out[0], path[0])  # nothing accumulated yet
+    assert np.allclose(out[1], [1.2, -0.1, 3.125])  # half of x, y; a quarter of θ
+    assert np.allclose(out[2], [2.4, -0.2, 3.2 - 2 * math.pi])  # all of it, θ wrapped
+    assert np.allclose(out[3], path[3])  # a stretch without odometry variance: unmoved
+    assert np.allclose(path[1], [1.0, 0.0, 3.1])  # the input is left as it was
+
+
 def test_velocity_noise_does_not_depend_on_message_rate():
     """Velocity-odometry errors are a random walk in time: the same 2 s of motion logged at
     10 Hz or at 100 Hz ends with the same covariance (per-step σ ∝ dt would shrink it 10×

@@ -263,6 +263,21 @@ def test_a_turn_the_odometry_missed_is_found_by_a_full_turn_search():
     assert ate(sm.trajectory(), truth)["ate_rmse_unaligned_m"] < 0.1
 
 
+def test_the_path_between_keyframes_joins_both():
+    """Each odometry message's pose is its keyframe's estimate and the odometry since,
+    with the next keyframe's correction spread back over the stretch in proportion to
+    the odometry variance accumulated (slam.trajectory.spread_corrections): from one
+    message to the next the path moves as the truth does, to within a few millimetres of
+    the odometry's own error, where reading the keyframe before without the correction
+    jumped up to 16 mm at every keyframe."""
+    msgs, truth = loop_messages()
+    sm = _run(msgs, GtsamConfig(scan_matching=True), tuple(truth.poses[0]))
+    tr = sm.trajectory()
+    moved = np.diff(tr.poses[:, :2], axis=0) - np.diff(truth.interpolate(tr.t)[:, :2], axis=0)
+    assert len(tr.t) > 1000
+    assert np.hypot(*moved.T).max() < 0.005
+
+
 def test_scans_are_ignored_unless_scan_matching_is_on():
     msgs, _ = loop_messages(laps=1)
     msgs = msgs[:200]
