@@ -1012,7 +1012,8 @@ class GtsamSmoother(Localizer):
         if len(pts) < self._matcher.min_points:
             self.counts["scan_matching_s"] += time.perf_counter() - t0
             return
-        if np.any(self._delta != 0):
+        if np.any(self._delta != 0) or np.any(self._unknown != 0):
+            # it moved since the latest keyframe, or the odometry could not tell
             self._new_keyframe(msg.t)
         prev = self._scans[-1] if self._scans else None
         odo = (self._scan_delta, self._scan_cov, max(self._kf - self._scan_kf0, 1), self._scan_gap)

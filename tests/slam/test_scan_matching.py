@@ -263,6 +263,25 @@ def test_a_turn_the_odometry_missed_is_found_by_a_full_turn_search():
     assert ate(sm.trajectory(), truth)["ate_rmse_unaligned_m"] < 0.1
 
 
+def test_a_log_without_odometry_is_localized_by_its_scans_alone():
+    """Orebro's laser log has no odometry: one message of unknown motion before each
+    scan, at the scan's time. Every scan then needs a keyframe of its own, though the
+    odometry moved nothing (until 2026-12-05 it shared the last one's: 5.4 m off), and
+    the trajectory at a scan's time is the pose its match found, not the pose before it
+    (a keyframe made at an odometry message's time replaces that message's pose)."""
+    msgs, truth = loop_messages(laps=1)
+    scans = [m for m in msgs if isinstance(m, LaserScan)]
+    blind = []
+    for scan in scans:
+        blind += [VelocityOdometry(scan.t, math.nan, math.nan), scan]
+    sm = _run(blind, GtsamConfig(scan_matching=True), tuple(truth.poses[0]))
+    d = sm.diagnostics()
+    assert d["odometry_gaps"] == len(scans) - 1 and d["scan_factors"] == len(scans) - 1
+    t = np.array([s.t for s in scans])
+    err = np.hypot(*(sm.trajectory().interpolate(t)[:, :2] - truth.interpolate(t)[:, :2]).T)
+    assert np.sqrt(np.mean(err**2)) < 0.02 and err.max() < 0.05
+
+
 def test_the_path_between_keyframes_joins_both():
     """Each odometry message's pose is its keyframe's estimate and the odometry since,
     with the next keyframe's correction spread back over the stretch in proportion to
