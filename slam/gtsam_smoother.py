@@ -237,7 +237,10 @@ class MatchGate(Acceptance):
     window instead when the odometry did not measure part of the motion since the last
     kept scan (a gap: slam.motion.Increment.unknown): 3.5 m, chosen on orebro, the one log
     made of gaps (its scans are up to 3.3 m apart; 1 m until 2026-12-05: BENCHMARKS.md),
-    held out on seattle's one gap."""
+    held out on seattle's one gap. unknown_candidates: the correlative search's best
+    poses that ICP refines in such a window (the matcher's refine_candidates elsewhere):
+    over a few metres the coarse score ranks a corridor's wrong stretch above the right
+    pose (seattle's gap at a 0.045 m voxel: the right one seventh), ICP tells them apart."""
 
     window_sigmas: float = 3.0
     window_xy_m: tuple[float, float] = (0.1, 0.5)
@@ -245,6 +248,7 @@ class MatchGate(Acceptance):
     robust: RobustKernel = RobustKernel.HUBER
     robust_k: float = 1.345
     unknown_window: tuple[float, float] = (3.5, math.pi)
+    unknown_candidates: int = 10
 
     def __post_init__(self) -> None:
         coerce(self, robust=RobustKernel)
@@ -1071,10 +1075,12 @@ class GtsamSmoother(Localizer):
             np.clip(c.scan.gate.window_sigmas * max(sd[0], sd[1]), *c.scan.gate.window_xy_m)
         )
         wth = float(np.clip(c.scan.gate.window_sigmas * sd[2], *c.scan.gate.window_theta_rad))
+        count = None
         if gap:
             wxy, wth = c.scan.gate.unknown_window
+            count = c.scan.gate.unknown_candidates
         guess = relative_guess(poses[prev.kf], poses[cur.kf])
-        res = match(ref, cur.scan, guess, wxy, wth, self._matcher)
+        res = match(ref, cur.scan, guess, wxy, wth, self._matcher, count)
         if c.scan.gate.accepts(res):
             self._add_match(prev.kf, cur.kf, res, c.scan.gate.robust, c.scan.gate.robust_k)
             self.counts["scan_factors"] += 1

@@ -617,10 +617,12 @@ def match(
     window_xy: float = 0.0,
     window_theta: float = 0.0,
     config: ScanMatchConfig | None = None,
+    candidates: int | None = None,
 ) -> MatchResult:
     """Pose of the query frame in the reference frame: correlative search within the
     window around `guess` (skipped when both windows are 0), ICP from its best distinct
-    poses, the refined pose with the most inliers (see the module docstring)."""
+    poses (`candidates` of them, default the config's refine_candidates), the refined
+    pose with the most inliers (see the module docstring)."""
     cfg = config or ref.config
     guess = np.asarray(guess, dtype=float)
     query = _points(query)
@@ -629,7 +631,7 @@ def match(
     if window_xy <= 0 and window_theta <= 0:
         starts = [(guess, math.nan)]
     else:
-        starts = correlative_search(ref, query, guess, window_xy, window_theta, cfg)
+        starts = correlative_search(ref, query, guess, window_xy, window_theta, cfg, candidates)
     results = [(icp(ref, query, s, cfg), score) for s, score in starts]
     results.sort(
         key=lambda rs: (rs[0].support, -np.nan_to_num(rs[0].rmse_m, nan=1e9)), reverse=True

@@ -57,12 +57,7 @@ def test_fhw_revisit_is_closed_by_loop_matches_that_agree(tmp_path):
     graph), and the wall was mapped twice. The matches agree with each other, so they
     are added together (slam.loop_consensus): 2026-12-04, ATE 0.215 -> 0.157 m, the
     map's spread within 50 cm 8.1 -> 6.9 cm (GMapping's poses: 6.2)."""
-    path = data_dir("carmen_corrected_logs") / "fhw-corrected.log.gz"
-    res = replay_log(
-        open_dataset("carmen", path), tmp_path, localizer="gtsam", figures=False, map_figure=False,
-        reference_map=False, drag_metrics=False,
-    )  # fmt: skip
-    m = res.metrics
+    m = _gtsam_metrics("fhw", tmp_path)
     assert m["localizer_diagnostics"]["loop_consensus"] >= 10
     assert m["ate_rmse_m"] < 0.18
     assert m["wall_spread_coarse_m"] < 1.2 * m["reference_wall_spread_coarse_m"]
@@ -72,15 +67,33 @@ def test_orebro_without_odometry_is_mapped_by_its_scans(tmp_path):
     """orebro's log keeps odometry for 18 of its 237 scan intervals; elsewhere the scans
     are 1-3 m and up to 76° apart with nothing between them. A gap's match searches
     ± 3.5 m and a full turn against the scan before alone (a submap's older scans are
-    placed only by earlier gap matches). 2026-12-05: ATE 17.6 -> 1.4 m (1.4-5.3 m over
-    the voxel spread), walls within 25 cm 8.0 -> 3.0 cm (GMapping's poses: 2.6)."""
-    path = data_dir("carmen_corrected_logs") / "orebro-corrected.log.gz"
-    res = replay_log(
-        open_dataset("carmen", path), tmp_path, localizer="gtsam", figures=False, map_figure=False,
-        reference_map=False, drag_metrics=False,
-    )  # fmt: skip
-    m = res.metrics
+    placed only by earlier gap matches), refining ten candidates. 2026-12-05: ATE 17.6
+    -> 0.95 m (0.95-4.2 m over the voxel spread), walls within 25 cm 8.0 -> 2.9 cm
+    (GMapping's poses: 2.6)."""
+    m = _gtsam_metrics("orebro", tmp_path)
     d = m["localizer_diagnostics"]
     assert d["odometry_gaps"] >= 200 and d["scan_factors"] >= 0.9 * d["scans_kept"], d
     assert m["ate_rmse_m"] < 6.0
     assert m["wall_spread_m"] < 1.5 * m["reference_wall_spread_m"]
+
+
+def test_seattles_gap_is_found_among_the_wide_searchs_candidates(tmp_path):
+    """seattle turns 81° in place in its one odometry gap. Searched ± 3.5 m, the best
+    three poses of the correlative search's coarse score lie 2 m down a corridor, where
+    ICP does not converge; the right one was its seventh (support 95 against 56). A
+    gap's match refines ten (`gtsam.scan.gate.unknown_candidates`): at a voxel of
+    0.045 m, 2.66 m with three, 0.048 m with ten (2026-12-05)."""
+    m = _gtsam_metrics("seattle", tmp_path, {"scan_match.voxel_m": 0.045})
+    assert m["localizer_diagnostics"]["odometry_gaps"] == 1
+    assert m["ate_rmse_m"] < 0.08
+
+
+def _gtsam_metrics(log: str, out, overrides: dict | None = None) -> dict:
+    """The metrics of `walkerslam replay --format carmen LOG --localizer gtsam` (no
+    figures), with `overrides` ({field path: value}) as its --set."""
+    path = data_dir("carmen_corrected_logs") / f"{log}-corrected.log.gz"
+    res = replay_log(
+        open_dataset("carmen", path), out, localizer="gtsam", localizer_overrides=overrides,
+        figures=False, map_figure=False, reference_map=False, drag_metrics=False,
+    )  # fmt: skip
+    return res.metrics
