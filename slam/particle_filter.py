@@ -435,7 +435,10 @@ class ParticleFilter(Localizer):
         else:
             z = self.rng.standard_normal((2, len(self.particles)))
             self.particles = _drawn_step(self.particles, inc.ds, inc.dtheta, inc.cov, z)
-        self._moved = (self._moved[0] + abs(inc.ds), self._moved[1] + abs(inc.dtheta))
+        if inc.unknown:  # it may have moved any distance: the next frame is scored
+            self._moved = (math.inf, math.inf)
+        else:
+            self._moved = (self._moved[0] + abs(inc.ds), self._moved[1] + abs(inc.dtheta))
         if self._rts:
             f, g = increment_jacobians(float(self._delta[2]), inc.ds, inc.dtheta)
             self._delta = apply_increment(self._delta, inc.ds, inc.dtheta)
