@@ -726,8 +726,10 @@ class GtsamSmoother(Localizer):
         self._records.append((t, self._kf, self._delta.copy(), self._variance()))
 
     def _variance(self) -> tuple[float, float]:
-        """The odometry variance (x + y, θ) accumulated since the latest keyframe."""
-        return self._delta_cov[0, 0] + self._delta_cov[1, 1], self._delta_cov[2, 2]
+        """The odometry variance (x + y, θ) accumulated since the latest keyframe, that of
+        motion it did not measure included."""
+        cov = self._delta_cov + self._unknown
+        return cov[0, 0] + cov[1, 1], cov[2, 2]
 
     def _integrate(
         self, ds: float, dth: float, q: np.ndarray, jk: np.ndarray | None = None
@@ -793,6 +795,7 @@ class GtsamSmoother(Localizer):
             self._pending.append((self._graph.size(), self._early_odometry[-1]))
         factor = self._odometry_factor(self._kf, self._delta, self._delta_cov, slip, self._unknown)
         self._graph.add(factor)
+        self._segments.append((self._delta.copy(), self._variance()))
         self._unknown = np.zeros((3, 3))
         predicted = compose(self._kf_pose, self._delta)
         self._values.insert(X(k), gtsam.Pose2(*predicted))
@@ -801,7 +804,6 @@ class GtsamSmoother(Localizer):
             self._graph.add(slip_walk_factor(S(self._kf), S(k), max(walk, 1e-6)))
             self._values.insert(S(k), self._k)
             self._delta_jk = np.zeros((3, 2))
-        self._segments.append((self._delta.copy(), self._variance()))
         self._kf = k
         self._kf_t.append(t)
         self._delta = np.zeros(3)
@@ -813,11 +815,16 @@ class GtsamSmoother(Localizer):
             self._kf_pose, self._marginal = predicted, None
         self._note(t)
 
+    def _moved(self) -> bool:
+        """Whether the walker moved since the latest keyframe, or the odometry could not
+        tell (a gap: its motion unknown, not zero)."""
+        return bool(np.any(self._delta != 0) or np.any(self._unknown != 0))
+
     def _attach(self, t: float, flush: bool) -> None:
         """An observation at t attaches to the latest keyframe, or starts a new one at t
         when it comes obs_keyframe_dt_s or more after it and the walker has moved (its
         iSAM2 update left to the caller when flush is False)."""
-        if t - self._kf_t[-1] >= self.config.obs_keyframe_dt_s and np.any(self._delta != 0):
+        if t - self._kf_t[-1] >= self.config.obs_keyframe_dt_s and self._moved():
             self._new_keyframe(t, flush)
 
     def _absolute(self, obs: AbsoluteObservation) -> None:
@@ -1022,8 +1029,7 @@ class GtsamSmoother(Localizer):
         if len(pts) < self._matcher.min_points:
             self.counts["scan_matching_s"] += time.perf_counter() - t0
             return
-        if np.any(self._delta != 0) or np.any(self._unknown != 0):
-            # it moved since the latest keyframe, or the odometry could not tell
+        if self._moved():
             self._new_keyframe(msg.t)
         prev = self._scans[-1] if self._scans else None
         odo = (self._scan_delta, self._scan_cov, max(self._kf - self._scan_kf0, 1), self._scan_gap)
