@@ -465,7 +465,12 @@ def closed_loop(view: FoxgloveView | None):
 
 def test_the_closed_loop_with_a_background_view_sends_everything_and_changes_nothing():
     cfg = ViewConfig(depth_hz=1e6)  # the camera's 10 Hz; the SLAM state at its defaults
-    with FoxgloveView(port=0, config=cfg, background=True, message_backlog=100_000) as view:
+    # the loop is not paced: it hands the view the whole run's ~600 messages in a fraction
+    # of a second, which the default queue of 64 drops (counted) in a busy hour (1 run in
+    # 20 beside four busy loops); a live loop's messages come at the sensors' rates
+    with FoxgloveView(
+        port=0, config=cfg, background=True, queue_size=10_000, message_backlog=100_000
+    ) as view:
         client = Client(view.url)
         try:
             client.wait(lambda: all(view.is_subscribed(t) for t in view.topics()), "topics")
