@@ -728,8 +728,8 @@ class GtsamSmoother(Localizer):
     def _variance(self) -> tuple[float, float]:
         """The odometry variance (x + y, θ) accumulated since the latest keyframe, that of
         motion it did not measure included."""
-        cov = self._delta_cov + self._unknown
-        return cov[0, 0] + cov[1, 1], cov[2, 2]
+        d, u = self._delta_cov, self._unknown  # (every odometry message: no temporaries)
+        return (d[0, 0] + u[0, 0]) + (d[1, 1] + u[1, 1]), d[2, 2] + u[2, 2]
 
     def _integrate(
         self, ds: float, dth: float, q: np.ndarray, jk: np.ndarray | None = None

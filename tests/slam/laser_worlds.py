@@ -74,6 +74,16 @@ def loop_messages(laps: int = 2, seed: int = 5):
     return drive_messages(ROOM, np.vstack([corners] * laps + [corners[:1]]), seed=seed)
 
 
+def without_odometry(msgs) -> list:
+    """The laser scans of `msgs`, each after one velocity odometry of NaN at its time
+    (the motion since the last unknown): a log without odometry, as orebro's is."""
+    out = []
+    for m in msgs:
+        if isinstance(m, LaserScan):
+            out += [VelocityOdometry(m.t, math.nan, math.nan), m]
+    return out
+
+
 def drive_messages(
     world: np.ndarray,
     path: np.ndarray,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from laser_worlds import ROOM, loop_messages, render_scan
+from laser_worlds import ROOM, loop_messages, render_scan, without_odometry
 
 from experiments.config import configure
 from experiments.metrics import ate, relation_errors
@@ -324,9 +324,7 @@ def test_a_frame_after_motion_the_odometry_did_not_measure_is_scored():
     scored after its gap's search and the lap is centimetres from the truth."""
     msgs, truth = loop_messages(laps=1)
     scans = [m for m in msgs if isinstance(m, LaserScan)]
-    blind = []
-    for scan in scans:
-        blind += [VelocityOdometry(scan.t, math.nan, math.nan), scan]
+    blind = without_odometry(msgs)
     rbpf, _ = _run(blind, RBPF, tuple(truth.poses[0]))
     d = rbpf.diagnostics()
     assert d["scan_updates"] == d["gap_searches"] == len(scans) - 1

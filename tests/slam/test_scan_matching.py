@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from laser_worlds import HALL, ROOM, loop_messages, render_scan
+from laser_worlds import HALL, ROOM, loop_messages, render_scan, without_odometry
 
 from experiments.metrics import ate, relation_errors
 from hardware.calibration import WalkerCalibration
@@ -271,9 +271,7 @@ def test_a_log_without_odometry_is_localized_by_its_scans_alone():
     (a keyframe made at an odometry message's time replaces that message's pose)."""
     msgs, truth = loop_messages(laps=1)
     scans = [m for m in msgs if isinstance(m, LaserScan)]
-    blind = []
-    for scan in scans:
-        blind += [VelocityOdometry(scan.t, math.nan, math.nan), scan]
+    blind = without_odometry(msgs)
     sm = _run(blind, GtsamConfig(scan_matching=True), tuple(truth.poses[0]))
     d = sm.diagnostics()
     assert d["odometry_gaps"] == len(scans) - 1 and d["scan_factors"] == len(scans) - 1
