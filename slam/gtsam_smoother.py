@@ -252,6 +252,8 @@ class MatchGate(Acceptance):
 
     def __post_init__(self) -> None:
         coerce(self, robust=RobustKernel)
+        if self.unknown_candidates < 1:
+            raise ValueError(f"unknown_candidates must be >= 1, got {self.unknown_candidates}")
 
 
 @dataclass(frozen=True)

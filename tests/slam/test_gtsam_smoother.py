@@ -234,3 +234,10 @@ def test_sightings_during_an_odometry_gap_place_the_walker_across_it():
     poses = sm.trajectory().interpolate(np.array(times))
     assert np.abs(poses[:, 0] - np.array(xs)).max() < 0.01
     assert np.abs(poses[:, 1:]).max() < 0.01
+
+
+def test_a_gap_match_needs_a_candidate_to_refine():
+    from slam.gtsam_smoother import MatchGate
+
+    with pytest.raises(ValueError, match="unknown_candidates must be >= 1, got 0"):
+        MatchGate(unknown_candidates=0)
