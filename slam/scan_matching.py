@@ -326,6 +326,7 @@ class Reference:
         self.normals, self.has_normal = self._normals()
         self._field: tuple[np.ndarray, np.ndarray, float, np.ndarray] | None = None
         self._buckets: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._pooled: dict[int, np.ndarray] = {}
 
     def __len__(self) -> int:
         return len(self.points)
@@ -405,6 +406,14 @@ class Reference:
                 a[:, [0, -1]] = 0
             self._field = (score, lo, res, conflict)
         return self._field
+
+    def pooled(self, size: int) -> np.ndarray:
+        """The field's score max-filtered over size × size cells (outside: 0), built
+        once per size: the correlative search's best score within a step or a block."""
+        if size not in self._pooled:
+            score = self.field()[0]
+            self._pooled[size] = ndimage.maximum_filter(score, size=size, mode="constant")
+        return self._pooled[size]
 
     def conflicts(self, q: np.ndarray) -> np.ndarray:
         """Which points (N×2, reference frame) land in seen-free space away from every
@@ -563,7 +572,7 @@ def correlative_search(
     lik, lo, res, _ = ref.field()
     step_cells = max(1, round(cfg.coarse_step_m / res))
     # best fine translation within half a coarse step either way
-    pooled = ndimage.maximum_filter(lik, size=step_cells + 1 - (step_cells % 2), mode="constant")
+    pooled = ref.pooled(step_cells + 1 - (step_cells % 2))
     nt = math.floor(window_xy / (step_cells * res) + 1e-9)
     na = math.floor(window_theta / cfg.angle_step_rad + 1e-9)
     angles = guess[2] + np.arange(-na, na + 1) * cfg.angle_step_rad
@@ -580,7 +589,7 @@ def correlative_search(
     else:
         k = math.ceil(nt / cfg.multires_offsets)  # coarse steps per block side
         block = k * step_cells
-        bound = ndimage.maximum_filter(lik, size=block + step_cells + 1, mode="constant").ravel()
+        bound = ref.pooled(block + step_cells + 1).ravel()
         centres = np.arange(-math.ceil(nt / k), math.ceil(nt / k) + 1) * block
         upper = np.stack([grid_scores(bound, *lik.shape, c, centres, centres) for c in cells])
         best = np.argsort(upper, axis=None)[::-1][: cfg.multires_blocks]
