@@ -569,7 +569,7 @@ class LiveRun:
 
     def _result(self, duration: float, ended: str) -> LiveResult:
         """The smoother's final map, the live view's last state, the numbers."""
-        self.pipeline.rebuild_map()
+        self.pipeline.finish()
         if self.watcher is not None:
             self.watcher.finish()
             self.view.close()

@@ -208,11 +208,17 @@ class Pipeline:
     def run(
         self, source: Iterable[Message], progress: Callable[[float], None] | None = None
     ) -> None:
-        """Feed a whole source, then rebuild the map if a smoother revised the past."""
+        """Feed a whole source, then `finish`."""
         for msg in source:
             self.feed(msg)
             if progress is not None:
                 progress(msg.t)
+        self.finish()
+
+    def finish(self) -> None:
+        """The source has ended: the localizer's last pass (`Localizer.finish`), then the
+        map rebuilt if that or anything before revised the past."""
+        self.localizer.finish()
         self.rebuild_map()
 
 

@@ -67,6 +67,11 @@ class Localizer(ABC):
         """What the localizer wants a researcher to know (counts, fallbacks); may be empty."""
         return {}
 
+    def finish(self) -> None:
+        """The source has ended (a log's last message, a live run's stop): a smoother may
+        make a last pass over what it kept (gtsam's loop.final). Default: nothing."""
+        return None  # a filter has nothing left to revise
+
 
 @dataclass(frozen=True)
 class LocalizerConfig:

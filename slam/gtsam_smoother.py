@@ -90,6 +90,14 @@ Each kept scan is matched
   fitting the new scan's last few kept scans to the candidate's wider neighbourhood
   before it becomes a factor. On freiburg-campus, an outdoor loop whose drift reaches
   60 m before its first revisit, this took ATE from 45 m to 1.7 m (BENCHMARKS.md).
+- and, when the source has ended (`finish`: the pipeline calls it after a log's last
+  message and when a live run stops), in a final pass (`loop.final`) against the old
+  kept scans that cover the most of each kept scan's footprint, placed by the final
+  estimate and searched only a narrow window around it: a hall seen again from a few
+  metres away, beyond the loop search's radius, is tied to where it was seen first
+  (lanes driven up and down a hall: 0.163 → 0.023 m unaligned in
+  tests/slam/test_scan_overlap.py; on the laser logs BENCHMARKS.md, "Laser logs: a
+  final pass over the scans that saw the same walls").
 
 Huber is the default robust kernel for both kinds: it is convex, so a correct loop
 closure whose residual is large at first (the drift it corrects is many of its own
@@ -335,6 +343,44 @@ class PlaceRecognition:
             raise ValueError("need heading_sigmas > 0 and doubt_searches >= 1")
 
 
+FINAL_SUBMAPS = 16  # a final pass's submaps kept for the next scans (~11 MB each at 20 m)
+
+
+@dataclass(frozen=True)
+class FinalPass:
+    """When the source has ended (`GtsamSmoother.finish`): every kept scan is matched
+    again against the `candidates` older kept scans (at least loop.min_separation back,
+    one per stretch of neighbouring scans) that cover the most of its footprint (at
+    least loop.min_overlap, within loop.overlap_radius_m; slam.scan_overlap), each with
+    its ± loop.submap_half neighbours as the submap, placed by the final estimate and
+    searched only ± window_xy_m and ± window_theta_rad around it; a match `gate` accepts
+    becomes a loop-closure factor (robust as loop.gate says), and iSAM2 runs `updates`
+    updates. Repeated `passes` times (a pair once matched is not matched again; 0: no
+    final pass). By the end the estimate is good, so the window is narrow and a match
+    cannot jump to a look-alike, and the scans of a hall seen again from a few metres
+    away — lanes driven up and down it, beyond the loop search's radius — are tied to
+    each other (BENCHMARKS.md, "Laser logs: a final pass over the scans that saw the
+    same walls")."""
+
+    passes: int = 2
+    candidates: int = 2
+    window_xy_m: float = 0.3
+    window_theta_rad: float = 0.05
+    gate: Acceptance = field(
+        default_factory=lambda: Acceptance(min_inlier_fraction=0.4, max_conflict_fraction=0.1)
+    )
+    updates: int = 5
+
+    def __post_init__(self) -> None:
+        if self.passes < 0 or self.candidates < 1 or self.updates < 1:
+            raise ValueError(
+                "need passes >= 0, candidates >= 1 and updates >= 1, got "
+                f"{self.passes}, {self.candidates}, {self.updates}"
+            )
+        if not (self.window_xy_m >= 0 and self.window_theta_rad >= 0):
+            raise ValueError("window_xy_m and window_theta_rad must be >= 0")
+
+
 @dataclass(frozen=True)
 class LoopClosures:
     """Loop closures: enabled; a candidate is a kept scan within search_radius_m (plus
@@ -373,11 +419,18 @@ class LoopClosures:
     extra_updates: int = 2
     place: PlaceRecognition = field(default_factory=PlaceRecognition)
     consensus: LoopConsensus = field(default_factory=LoopConsensus)
+    final: FinalPass = field(default_factory=FinalPass)
 
     @property
     def by_overlap(self) -> bool:
-        """Whether submaps or candidates are chosen by overlap (scans need footprints)."""
+        """Whether the loop search chooses submaps or candidates by overlap."""
         return self.submap_span > self.submap_half or self.overlap_candidates > 0
+
+    @property
+    def footprints(self) -> bool:
+        """Whether kept scans need footprints (the loop search's overlap, the final
+        pass)."""
+        return self.enabled and (self.by_overlap or self.final.passes > 0)
 
     def __post_init__(self) -> None:
         if self.min_separation < 1:
@@ -613,6 +666,7 @@ class GtsamSmoother(Localizer):
         # [keyframe, delta, model cov, slip (or None), factor index]
         self._early_odometry: list[list] = []
         self._pending: list[tuple[int, list]] = []  # (position in self._graph, record)
+        self._final_matched: set[tuple[int, int]] = set()  # (old, new) kept scans
         # slip estimation: the latest estimate of k, and ∂delta/∂k since the keyframe
         self._slip = config.slip.estimate
         self._k = np.array(config.slip.k_prior, dtype=float)
@@ -635,6 +689,8 @@ class GtsamSmoother(Localizer):
                 place_closures=0,
                 place_doubted=0,
                 loop_consensus=0,
+                final_candidates=0,
+                final_matches=0,
                 scan_matching_s=0.0,
             )
 
@@ -1040,7 +1096,7 @@ class GtsamSmoother(Localizer):
         if isinstance(msg, LaserScan) and c.loop.place.enabled:
             pl = c.loop.place
             key = ring_key(msg, pl.rings, pl.sectors, pl.range_m)
-        cells = footprint(pts.points, c.loop.overlap_cell_m) if c.loop.by_overlap else None
+        cells = footprint(pts.points, c.loop.overlap_cell_m) if c.loop.footprints else None
         self._scans.append(_ScanKeyframe(self._kf, msg.t, pts, key, cells))
         self._scan_delta = np.zeros(3)
         self._scan_cov = np.zeros((3, 3))
@@ -1140,8 +1196,8 @@ class GtsamSmoother(Localizer):
         marginal = self.isam.marginalCovariance(X(self._scans[-1].kf))
         sxy = math.sqrt(max(float(eigh2(marginal[:2, :2])[0][-1]), 0.0))
         chosen, dist = self._loop_candidates(poses, here, sxy)
-        shares = self._overlaps(poses, here, dist)
-        by_overlap = self._overlap_candidates(shares, chosen)
+        shares = self._overlaps(poses, len(self._scans) - 1, dist)
+        by_overlap = self._overlap_candidates(shares, chosen, loop.overlap_candidates)
         added = sum(self._try_loop(poses, here, i, float(dist[i]), shares) for i in chosen)
         added += sum(self._try_loop(poses, here, i, None, shares) for i in by_overlap)
         if not added:  # those turned away may agree with the ones held before them
@@ -1160,6 +1216,58 @@ class GtsamSmoother(Localizer):
             for _ in range(updates):
                 self.isam.update()
             self._after_update()
+
+    def finish(self) -> None:
+        """The source has ended: the final pass (loop.final) over the kept scans."""
+        c = self.config
+        if not (c.scan_matching and c.loop.enabled) or len(self._scans) <= c.loop.min_separation:
+            return
+        for _ in range(c.loop.final.passes):
+            if not self._final_pass():
+                break
+
+    def _final_pass(self) -> int:
+        """Match every kept scan against the old ones that saw the most of what it sees,
+        at the current estimate (FinalPass); add the accepted matches and update.
+        Returns how many were added."""
+        loop = self.config.loop
+        final = loop.final
+        poses = self._poses()
+        kfs = np.array([sc.kf for sc in self._scans])
+        submaps: dict[tuple[int, int], Reference] = {}  # the last few candidates'; LRU
+        added = 0
+        for i in range(loop.min_separation + 1, len(self._scans)):
+            cur = self._scans[i]
+            old = kfs[: i - loop.min_separation]
+            dist = np.hypot(*(poses[old, :2] - poses[cur.kf, :2]).T)
+            shares = self._overlaps(poses, i, dist)
+            for j in self._overlap_candidates(shares, [], final.candidates):
+                if (j, i) in self._final_matched:
+                    continue
+                cand = self._scans[j]
+                members = self._neighbours(j, loop.submap_half, i)
+                key = (members.start, members.stop)
+                if key not in submaps:
+                    if len(submaps) >= FINAL_SUBMAPS:  # the least recently used goes
+                        del submaps[next(iter(submaps))]
+                    submaps[key] = self._submap(poses, members, cand.kf)
+                ref = submaps[key] = submaps.pop(key)  # now the most recently used
+                guess = relative_guess(poses[cand.kf], poses[cur.kf])
+                res = match(
+                    ref, cur.scan, guess, final.window_xy_m, final.window_theta_rad, self._matcher
+                )
+                self.counts["final_candidates"] += 1
+                if final.gate.accepts(res):
+                    self._add_match(cand.kf, cur.kf, res, loop.gate.robust, loop.gate.robust_k)
+                    self._final_matched.add((j, i))
+                    added += 1
+        self.counts["final_matches"] += added
+        if added:
+            self._flush()
+            for _ in range(final.updates):
+                self.isam.update()
+            self._after_update()
+        return added
 
     def _loop_candidates(
         self, poses: np.ndarray, here: np.ndarray, sxy: float
@@ -1181,39 +1289,42 @@ class GtsamSmoother(Localizer):
                     break
         return chosen, dist
 
-    def _overlaps(self, poses: np.ndarray, here: np.ndarray, dist: np.ndarray) -> np.ndarray:
-        """Per old kept scan (dist's positions): the share of the newest scan's
-        footprint it covers at the estimate; 0 beyond loop.overlap_radius_m."""
+    def _overlaps(self, poses: np.ndarray, i: int, dist: np.ndarray) -> np.ndarray:
+        """Per old kept scan (dist's positions: their distances from kept scan i): the
+        share of scan i's footprint it covers at the estimate; 0 beyond
+        loop.overlap_radius_m."""
         loop = self.config.loop
         shares = np.zeros(len(dist))
-        if not loop.by_overlap:
+        if self._scans[i].cells is None:
             return shares  # nothing asks for them
         near = np.flatnonzero(dist <= loop.overlap_radius_m)
-        old = [self._scans[i] for i in near]
-        cur = self._scans[-1]
+        old = [self._scans[j] for j in near]
+        cur = self._scans[i]
         shares[near] = overlap(
-            here, cur.cells, poses[[sc.kf for sc in old]].reshape(-1, 3),
+            poses[cur.kf], cur.cells, poses[[sc.kf for sc in old]].reshape(-1, 3),
             [sc.cells for sc in old], loop.overlap_cell_m,
         )  # fmt: skip
         return shares
 
-    def _overlap_candidates(self, shares: np.ndarray, chosen: list[int]) -> list[int]:
-        """Up to loop.overlap_candidates old scans that cover the most of the newest
-        scan's footprint (at least loop.min_overlap), one per stretch of neighbouring
-        scans, none in the stretch of a candidate already chosen."""
+    def _overlap_candidates(self, shares: np.ndarray, chosen: list[int], count: int) -> list[int]:
+        """Up to `count` old scans that cover the most of a scan's footprint (at least
+        loop.min_overlap), one per stretch of neighbouring scans, none in the stretch of
+        a candidate already chosen."""
         loop = self.config.loop
         picked: list[int] = []
         for i in np.argsort(-shares, kind="stable").tolist():
-            if len(picked) >= loop.overlap_candidates or shares[i] < loop.min_overlap:
+            if len(picked) >= count or shares[i] < loop.min_overlap:
                 break
             if all(abs(i - j) > 2 * loop.submap_half for j in chosen + picked):
                 picked.append(i)
         return picked
 
-    def _neighbours(self, i: int, half: int) -> range:
-        """Kept scan i and its `half` neighbours either side, none of the newest
-        loop.min_separation (a loop-closure candidate's submap)."""
-        last = len(self._scans) - self.config.loop.min_separation
+    def _neighbours(self, i: int, half: int, newest: int | None = None) -> range:
+        """Kept scan i and its `half` neighbours either side, none of the
+        loop.min_separation before kept scan `newest` (default: the newest; a
+        loop-closure candidate's submap)."""
+        newest = len(self._scans) - 1 if newest is None else newest
+        last = newest + 1 - self.config.loop.min_separation
         return range(max(0, i - half), min(last, i + half + 1))
 
     def _place_closure(self, poses: np.ndarray) -> bool:

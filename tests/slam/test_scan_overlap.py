@@ -11,7 +11,7 @@ from laser_worlds import HALL, box_walls, drive_messages, render_scan
 from experiments.metrics import ate
 from hardware.calibration import WalkerCalibration
 from slam.base import create
-from slam.gtsam_smoother import GtsamConfig, LoopClosures
+from slam.gtsam_smoother import FinalPass, GtsamConfig, LoopClosures
 from slam.scan_matching import laser_points
 from slam.scan_overlap import chosen_by_overlap, footprint, overlap
 
@@ -120,6 +120,60 @@ def test_a_revisit_driven_the_other_way_is_closed_against_the_scans_that_faced_i
     assert closed > 5 * (d_time["loop_closures"] + d_time["loop_consensus"])
     assert ate(by_overlap.trajectory(), truth)["ate_rmse_unaligned_m"] < 0.06
     assert ate(by_time.trajectory(), truth)["ate_rmse_unaligned_m"] > 0.1
+
+
+# A 20 × 10 m hall, its walls broken by cabinets, pillars and stubs at irregular places.
+WIDE_HALL = np.array(
+    box_walls(0, 0, 20, 10)
+    + box_walls(2.5, 9.4, 3.1, 10.0)
+    + box_walls(6.0, 0.0, 6.8, 0.5)
+    + [(9.5, 10.0, 9.5, 9.2), (19.3, 4.0, 20.0, 4.0), (0.0, 2.8, 0.6, 2.8)]
+    + box_walls(12.0, 0.0, 12.3, 0.7)
+    + box_walls(15.5, 9.5, 16.6, 10.0)
+    + box_walls(0.0, 6.2, 0.5, 6.9)
+    + box_walls(19.6, 7.5, 20.0, 8.1)
+    + box_walls(9.8, 4.8, 10.4, 5.4)
+)
+
+
+def test_the_final_pass_ties_lanes_the_loop_search_cannot_reach():
+    """Four lanes up and down a hall, 1.6–3.4 m apart, with a forward 180° laser: each
+    lane sees the walls the others saw, but from beyond the loop search's 2 m, so the
+    path keeps the odometry's heading drift between lanes. When the log ends, the final
+    pass matches every kept scan against the old ones that saw most of the same walls,
+    at the final estimate within ± 0.3 m (measured: 368 matches of 378 tried, 0.163 →
+    0.023 m unaligned)."""
+    path = np.array(
+        [(1.5, 1.5), (18.5, 1.5), (18.5, 3.6), (1.5, 3.6), (1.5, 7.0), (18.5, 7.0),
+         (18.5, 8.6), (1.5, 8.6)]
+    )  # fmt: skip
+    msgs, truth = drive_messages(WIDE_HALL, path, fov=FORWARD, speed_error=0.03, yaw_bias=0.02)
+    loc = create("gtsam", WalkerCalibration(), GtsamConfig(scan_matching=True),
+                 initial_pose=(1.5, 1.5, 0.0))  # fmt: skip
+    for m in msgs:
+        loc.process(m)
+    before = ate(loc.trajectory(), truth)["ate_rmse_unaligned_m"]
+    revision = loc.revision
+    loc.finish()
+    after = ate(loc.trajectory(), truth)["ate_rmse_unaligned_m"]
+    d = loc.diagnostics()
+    assert before > 0.1
+    assert after < 0.04
+    assert d["final_matches"] > 0.8 * d["final_candidates"] > 200
+    assert loc.revision > revision  # the pipeline rebuilds its map along the new path
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"passes": -1}, "need passes >= 0"),
+        ({"candidates": 0}, "candidates >= 1"),
+        ({"window_xy_m": -0.1}, "window_xy_m and window_theta_rad must be >= 0"),
+    ],
+)
+def test_bad_final_pass_settings_are_refused(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        FinalPass(**kwargs)
 
 
 @pytest.mark.parametrize(
