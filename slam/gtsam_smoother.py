@@ -241,25 +241,35 @@ class MatchGate(Acceptance):
     window_sigmas standard deviations of the prior (odometry, or the joint marginal for a
     loop), clipped to window_xy_m and window_theta_rad (min, max); accepted at the
     thresholds of slam.scan_matching.Acceptance; its factor robust with `robust`
-    ("huber", "cauchy", "none") at robust_k. unknown_window (xy m, θ rad): the search
-    window instead when the odometry did not measure part of the motion since the last
-    kept scan (a gap: slam.motion.Increment.unknown): 3.5 m, chosen on orebro, the one log
-    made of gaps (its scans are up to 3.3 m apart; 1 m until 2026-12-05: BENCHMARKS.md),
-    held out on seattle's one gap. unknown_candidates: the correlative search's best
-    poses that ICP refines in such a window (the matcher's refine_candidates elsewhere):
-    over a few metres the coarse score ranks a corridor's wrong stretch above the right
-    pose (seattle's gap at a 0.045 m voxel: the right one seventh), ICP tells them apart."""
+    ("huber", "cauchy", "none") at robust_k."""
 
     window_sigmas: float = 3.0
     window_xy_m: tuple[float, float] = (0.1, 0.5)
     window_theta_rad: tuple[float, float] = (0.05, 0.35)
     robust: RobustKernel = RobustKernel.HUBER
     robust_k: float = 1.345
+
+    def __post_init__(self) -> None:
+        coerce(self, robust=RobustKernel)
+
+
+@dataclass(frozen=True)
+class SequentialGate(MatchGate):
+    """A sequential match's MatchGate, and its search across an odometry gap.
+    unknown_window (xy m, θ rad): the search window instead when the odometry did not
+    measure part of the motion since the last kept scan (a gap:
+    slam.motion.Increment.unknown): 3.5 m, chosen on orebro, the one log made of gaps
+    (its scans are up to 3.3 m apart; 1 m until 2026-12-05: BENCHMARKS.md), held out on
+    seattle's one gap. unknown_candidates: the correlative search's best poses that ICP
+    refines in such a window (the matcher's refine_candidates elsewhere): over a few
+    metres the coarse score ranks a corridor's wrong stretch above the right pose
+    (seattle's gap at a 0.045 m voxel: the right one seventh), ICP tells them apart."""
+
     unknown_window: tuple[float, float] = (3.5, math.pi)
     unknown_candidates: int = 10
 
     def __post_init__(self) -> None:
-        coerce(self, robust=RobustKernel)
+        super().__post_init__()
         if self.unknown_candidates < 1:
             raise ValueError(f"unknown_candidates must be >= 1, got {self.unknown_candidates}")
 
@@ -282,7 +292,7 @@ class SequentialScans:
     keyframe_distance_m: float = 0.3
     keyframe_angle_rad: float = 0.2
     submap_size: int = 10
-    gate: MatchGate = field(default_factory=MatchGate)
+    gate: SequentialGate = field(default_factory=SequentialGate)
 
     def __post_init__(self) -> None:
         if self.submap_size < 1:
