@@ -258,8 +258,11 @@ def test_live_sim_with_the_gyro_on_the_board_fuses_it_and_replays_the_same(tmp_p
     ticks = [m for m in msgs if isinstance(m, EncoderTicks)]
     rates = [m for m in msgs if isinstance(m, GyroRate)]
     # (the reports read before the handshake reply, which gives the gyro's scale, have
-    # no rate)
-    assert len(ticks) == res.board["ticks"] > 700 and 0 <= len(ticks) - len(rates) <= 2
+    # no rate). 8 s of reports at 100 Hz are 800 when the board keeps the wall clock's
+    # pace; simavr runs at the harness's, which a loaded host slows (685 in a
+    # fresh-clone CI beside two other replays, 2026-12-05): the bound asks for a stream,
+    # not for a pace
+    assert len(ticks) == res.board["ticks"] > 400 and 0 <= len(ticks) - len(rates) <= 2
     # each rate was fed (and recorded) right before the ticks of its report
     for a, b in itertools.pairwise(msgs):
         if isinstance(a, GyroRate):
