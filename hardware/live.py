@@ -204,11 +204,13 @@ class LiveSources:
 
     # -- internals --------------------------------------------------------------------
     def _pump(self, d: _Device) -> None:
+        # Everything a device yields is queued, after stop() as well: a driver may yield
+        # what it decoded before it was closed (a serial read can hold many reports when
+        # the host fell behind), and remaining() hands that to the recording. The
+        # stream ends when close() closes the device.
         try:
             for msg in d.source.messages():
                 with self._cond:
-                    if self._stopped:
-                        break
                     self._arrive(d, msg)
                     self._cond.notify_all()
         except Exception as e:
