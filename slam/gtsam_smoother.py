@@ -144,6 +144,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import gtsam
 import numpy as np
@@ -437,12 +438,6 @@ class LoopClosures:
     def by_overlap(self) -> bool:
         """Whether the loop search chooses submaps or candidates by overlap."""
         return self.submap_span > self.submap_half or self.overlap_candidates > 0
-
-    @property
-    def footprints(self) -> bool:
-        """Whether kept scans need footprints (the loop search's overlap, the final
-        pass)."""
-        return self.enabled and (self.by_overlap or self.final.passes > 0)
 
     def __post_init__(self) -> None:
         if self.min_separation < 1:
@@ -1110,7 +1105,7 @@ class GtsamSmoother(Localizer):
         if isinstance(msg, LaserScan) and c.loop.place.enabled:
             pl = c.loop.place
             key = ring_key(msg, pl.rings, pl.sectors, pl.range_m)
-        cells = footprint(pts.points, c.loop.overlap_cell_m) if c.loop.footprints else None
+        cells = footprint(pts.points, c.loop.overlap_cell_m) if c.loop.by_overlap else None
         self._scans.append(_ScanKeyframe(self._kf, msg.t, pts, key, cells))
         self._scan_delta = np.zeros(3)
         self._scan_cov = np.zeros((3, 3))
@@ -1238,6 +1233,9 @@ class GtsamSmoother(Localizer):
             return  # (depth frames: FinalPass)
         if len(self._scans) <= c.loop.min_separation:
             return
+        for sc in self._scans:  # the loop search made them only if it chose by overlap
+            if sc.cells is None:
+                sc.cells = footprint(sc.scan.points, c.loop.overlap_cell_m)
         for _ in range(c.loop.final.passes):
             if not self._final_pass():
                 break
@@ -1250,7 +1248,11 @@ class GtsamSmoother(Localizer):
         final = loop.final
         poses = self._poses()
         kfs = np.array([sc.kf for sc in self._scans])
-        submaps: dict[tuple[int, int], Reference] = {}  # the last few candidates'; LRU
+
+        @lru_cache(maxsize=FINAL_SUBMAPS)  # a candidate's submap serves the scans after it
+        def submap(j: int, members: range) -> Reference:
+            return self._submap(poses, members, self._scans[j].kf)
+
         added = 0
         for i in range(loop.min_separation + 1, len(self._scans)):
             cur = self._scans[i]
@@ -1261,13 +1263,7 @@ class GtsamSmoother(Localizer):
                 if (j, i) in self._final_matched:
                     continue
                 cand = self._scans[j]
-                members = self._neighbours(j, loop.submap_half, i)
-                key = (members.start, members.stop)
-                if key not in submaps:
-                    if len(submaps) >= FINAL_SUBMAPS:  # the least recently used goes
-                        del submaps[next(iter(submaps))]
-                    submaps[key] = self._submap(poses, members, cand.kf)
-                ref = submaps[key] = submaps.pop(key)  # now the most recently used
+                ref = submap(j, self._neighbours(j, loop.submap_half, i))
                 guess = relative_guess(poses[cand.kf], poses[cur.kf])
                 res = match(
                     ref, cur.scan, guess, final.window_xy_m, final.window_theta_rad, self._matcher
