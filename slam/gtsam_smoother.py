@@ -84,12 +84,14 @@ Each kept scan is matched
   saw the same walls");
 - for loop closures found by place recognition (`loop.place`, laser scans), when the
   position is too uncertain for that search (its window clipped at its largest): the
-  old kept scans whose ring keys (slam.place_recognition: per range ring, the share of
-  bearing sectors with a return, within 80 m) are nearest the new scan's are matched
-  around their own poses (± 3 m, a full turn), and an accepted match is verified by
-  fitting the new scan's last few kept scans to the candidate's wider neighbourhood
-  before it becomes a factor. On freiburg-campus, an outdoor loop whose drift reaches
-  60 m before its first revisit, this took ATE from 45 m to 1.7 m (BENCHMARKS.md).
+  old kept scans whose polar keys (slam.place_recognition: the returns within 80 m in
+  range rings × bearing sectors, compared at the best turn) are most like the new
+  scan's are matched around their own poses (± 3 m, a full turn), and an accepted
+  match is verified by fitting the new scan's last few kept scans to the candidate's
+  wider neighbourhood before it becomes a factor. On freiburg-campus, an outdoor loop
+  whose drift reaches 60 m before its first revisit, this took ATE from 45 m to 1.7 m,
+  and with polar keys (and no loop search beyond `loop.max_search_uncertainty_m`) to
+  0.55 m (BENCHMARKS.md).
 - and, when the source has ended (`finish`: the pipeline calls it after a log's last
   message and when a live run stops), in a final pass (`loop.final`) against the old
   kept scans that cover the most of each kept scan's footprint, placed by the final
@@ -194,7 +196,7 @@ from slam.motion import (
     increment_jacobians,
     split_increment,
 )
-from slam.place_recognition import nearest_keys, ring_key
+from slam.place_recognition import nearest_places, polar_key
 from slam.scan_matching import (
     Acceptance,
     MatchResult,
@@ -305,13 +307,15 @@ class PlaceRecognition:
     """Loop closures found by place recognition (slam.place_recognition), for laser
     scans, when the position is too uncertain for the search around the estimate (the
     loop search's window clipped at its largest): every `every` kept scans, the
-    `candidates` old kept scans with the nearest ring keys (`rings` × `sectors` bins of
-    the returns within `range_m`) that lie at least `min_path_m` back along the path are
-    matched, searching ± window_m and a full turn around the candidate's own pose,
+    `candidates` old kept scans with the most similar polar keys (`rings` × `sectors`
+    bins of the returns within `range_m`) that lie at least `min_path_m` back along the
+    path are matched, searching ± window_m and a full turn around the candidate's own pose,
     through `gate`; a match it accepts is verified: the new scan's last `verify_scans`
     kept scans, placed by the estimate, must fit the candidate's ± `verify_half`
     neighbours from the found pose (ICP, the same gate) to within 0.2 m and 3°. An
-    accepted one becomes a loop-closure factor, followed by `updates` iSAM2 updates —
+    accepted one becomes a loop-closure factor, followed by `updates` iSAM2 updates (30:
+    a robust factor pulls a revisit 120 m and 90° off back only slowly; the kidnapped
+    walker below was still 81° off after 10) —
     unless its heading is more than `heading_sigmas` standard deviations from the
     graph's (their joint marginal): such a match is held, and added only when a place
     match of a later search (within `doubt_searches` searches) moves the newest scan to
@@ -342,7 +346,7 @@ class PlaceRecognition:
             min_inlier_fraction=0.7, max_conflict_fraction=0.1, min_constraint=0.1
         )
     )
-    updates: int = 10
+    updates: int = 30
 
     def __post_init__(self) -> None:
         for name in ("every", "candidates", "rings", "sectors", "verify_scans"):
@@ -404,7 +408,13 @@ class LoopClosures:
     2·submap_half + 1 scans: the candidate and, of the scans within ± submap_span of it,
     those that cover most of the new scan's footprint (submap_span = submap_half: its
     neighbours), through `gate`, and
-    kept when its disagreement with the estimate passes gate_chi2 (0: no gate); after
+    kept when its disagreement with the estimate passes gate_chi2 (0: no gate); a
+    candidate is not searched at all while its relative position is uncertain beyond
+    max_search_uncertainty_m (gate.window_sigmas σ): the window, at most
+    gate.window_xy_m, would cover too little of where the scan may be, and a look-alike
+    there is likelier than the place (freiburg-campus, 2026-12-05: a loop 51 m off at 3 σ
+    = 64 m took the ATE to 26 m; the right ones on csail and acapulco were searched at
+    3 σ ≤ 4.8 m): place recognition, which verifies and doubts, searches then. After
     loop closures iSAM2 runs extra_updates more updates; place: loops found by place
     recognition when the position is too uncertain for this search; consensus: matches
     both gates turn away, and those of overlap candidates, added together when several
@@ -429,6 +439,7 @@ class LoopClosures:
         )
     )
     gate_chi2: float = 16.27
+    max_search_uncertainty_m: float = 10.0
     extra_updates: int = 2
     place: PlaceRecognition = field(default_factory=PlaceRecognition)
     consensus: LoopConsensus = field(default_factory=LoopConsensus)
@@ -448,6 +459,10 @@ class LoopClosures:
             )
         if self.overlap_candidates < 0:
             raise ValueError(f"overlap_candidates must be >= 0, got {self.overlap_candidates}")
+        if not self.max_search_uncertainty_m > 0:
+            raise ValueError(
+                f"max_search_uncertainty_m must be > 0, got {self.max_search_uncertainty_m}"
+            )
         if not 0 <= self.min_overlap <= 1:
             raise ValueError(f"min_overlap must be in [0, 1], got {self.min_overlap}")
         if not (self.overlap_cell_m > 0 and self.overlap_radius_m > 0):
@@ -569,7 +584,7 @@ class _ScanKeyframe:
     kf: int
     t: float
     scan: Scan
-    key: np.ndarray | None = None  # ring key (laser scans; slam.place_recognition)
+    key: np.ndarray | None = None  # polar key (laser scans; slam.place_recognition)
     cells: np.ndarray | None = None  # footprint (slam.scan_overlap)
 
 
@@ -691,6 +706,7 @@ class GtsamSmoother(Localizer):
                 loop_closures=0,
                 loop_rejected=0,
                 loop_gated=0,
+                loop_too_uncertain=0,
                 loop_held=0,
                 place_searches=0,
                 place_candidates=0,
@@ -1104,7 +1120,7 @@ class GtsamSmoother(Localizer):
         key = None
         if isinstance(msg, LaserScan) and c.loop.place.enabled:
             pl = c.loop.place
-            key = ring_key(msg, pl.rings, pl.sectors, pl.range_m)
+            key = polar_key(msg, pl.rings, pl.sectors, pl.range_m)
         cells = footprint(pts.points, c.loop.overlap_cell_m) if c.loop.by_overlap else None
         self._scans.append(_ScanKeyframe(self._kf, msg.t, pts, key, cells))
         self._scan_delta = np.zeros(3)
@@ -1340,8 +1356,8 @@ class GtsamSmoother(Localizer):
         return range(max(0, i - half), min(last, i + half + 1))
 
     def _place_closure(self, poses: np.ndarray) -> bool:
-        """Every place.every calls: try the old kept scans whose ring keys are nearest
-        the newest scan's (and at least place.min_path_m back along the path); True
+        """Every place.every calls: try the old kept scans whose polar keys are most
+        like the newest scan's (and at least place.min_path_m back along the path); True
         when one was added as a loop closure (PlaceRecognition)."""
         loop = self.config.loop
         pl = loop.place
@@ -1364,7 +1380,7 @@ class GtsamSmoother(Localizer):
             return False
         keys = np.array([self._scans[i].key for i in old])
         return any(
-            self._try_place(poses, old[r]) for r in nearest_keys(keys, cur.key, pl.candidates)
+            self._try_place(poses, old[r]) for r in nearest_places(keys, cur.key, pl.candidates)
         )
 
     def _try_place(self, poses: np.ndarray, i: int) -> bool:
@@ -1447,6 +1463,9 @@ class GtsamSmoother(Localizer):
         rel_cov = self._relative_covariance(cand.kf, cur.kf, guess)
         sxy = math.sqrt(max(float(eigh2(rel_cov[:2, :2])[0][-1]), 0.0))
         sth = math.sqrt(max(float(rel_cov[2, 2]), 0.0))
+        if loop.gate.window_sigmas * sxy > loop.max_search_uncertainty_m:
+            self.counts["loop_too_uncertain"] += 1
+            return False
         wxy = float(np.clip(loop.gate.window_sigmas * sxy, *loop.gate.window_xy_m))
         wth = float(np.clip(loop.gate.window_sigmas * sth, *loop.gate.window_theta_rad))
         if dist is not None and dist > loop.search_radius_m + wxy:

@@ -14,35 +14,57 @@ from hardware.calibration import WalkerCalibration
 from hardware.messages import LaserScan, VelocityOdometry
 from slam.base import create
 from slam.gtsam_smoother import GtsamConfig, LoopClosures, PlaceRecognition
-from slam.place_recognition import nearest_keys, ring_key
+from slam.place_recognition import nearest_places, polar_key, similarities
 from slam.trajectory import Trajectory
 
 
-def test_a_ring_key_does_not_change_when_the_sensor_turns():
-    """Turning the sensor by whole sectors (5° at 72) shifts the returns' bearings, not
-    their rings: the same key; a different place gives a different one."""
+def test_a_polar_key_is_as_similar_as_can_be_to_itself_turned():
+    """Turning the sensor by whole sectors (5° at 72) shifts the key's columns: the best
+    shift finds it again (similarity 1); a different place is less similar, and the
+    shifted comparison equals a brute-force one over every np.roll."""
     scan = render_scan(ROOM, (4.0, 2.0, 0.3), fov=2 * math.pi, beams=720, range_max=30.0)
     turned = replace(scan, angle_min=scan.angle_min + math.radians(35.0))
-    key = ring_key(scan, rings=20, sectors=72, range_m=20.0)
-    assert np.linalg.norm(key) == pytest.approx(1.0)
-    np.testing.assert_allclose(ring_key(turned, 20, 72, 20.0), key, atol=1e-12)
-    hall = ring_key(render_scan(HALL, (7.0, 1.5, 0.0), fov=2 * math.pi, beams=720), 20, 72, 20.0)
-    assert np.linalg.norm(hall - key) > 0.2
+    key = polar_key(scan, rings=20, sectors=72, range_m=20.0)
+    assert key.shape == (20, 72)
+    seen = key.any(axis=0)
+    np.testing.assert_allclose(np.linalg.norm(key[:, seen], axis=0), 1.0, rtol=1e-6)
+    hall = polar_key(render_scan(HALL, (7.0, 1.5, 0.0), fov=2 * math.pi, beams=720), 20, 72, 20.0)
+    keys = np.stack([key, hall])
+    score = similarities(keys, polar_key(turned, 20, 72, 20.0))
+    assert score[0] == pytest.approx(1.0, abs=1e-5) and score[1] < 0.8
+    brute = [
+        max(
+            float((k * np.roll(q, s, axis=1)).sum())
+            / max(int((k.any(axis=0) | np.roll(q, s, axis=1).any(axis=0)).sum()), 1)
+            for s in range(72)
+        )
+        for k, q in ((key, hall), (hall, key))
+    ]
+    np.testing.assert_allclose(similarities(keys[:1], hall)[0], brute[0], rtol=1e-5)
+    np.testing.assert_allclose(similarities(keys[1:], key)[0], brute[1], rtol=1e-5)
 
 
-def test_a_ring_key_counts_only_returns_within_its_range():
+def test_a_polar_key_counts_only_returns_within_its_range():
     far = LaserScan(0.0, -math.pi / 2, math.pi / 180, np.full(181, 50.0, np.float32), 81.0)
     none = LaserScan(0.0, -math.pi / 2, math.pi / 180, np.full(181, 81.0, np.float32), 81.0)
-    assert not ring_key(far, range_m=40.0).any() and not ring_key(none).any()
-    key = ring_key(far, rings=20, range_m=80.0)  # 50 m: ring 12 of 4 m rings
-    assert key.argmax() == 12 and np.count_nonzero(key) == 1
+    assert not polar_key(far, range_m=40.0).any() and not polar_key(none).any()
+    key = polar_key(far, rings=20, sectors=72, range_m=80.0)  # 50 m: ring 12 of 4 m rings
+    assert set(np.flatnonzero(key.any(axis=1))) == {12}
+    assert np.count_nonzero(key.any(axis=0)) == 37  # 180° of 5° sectors, both ends
+    assert similarities(np.stack([key]), polar_key(none))[0] == 0.0
 
 
-def test_nearest_keys_nearest_first():
-    keys = np.array([[1.0, 0.0], [0.0, 1.0], [0.6, 0.8], [0.8, 0.6]])
-    np.testing.assert_array_equal(nearest_keys(keys, np.array([1.0, 0.0]), 3), [0, 3, 2])
-    assert len(nearest_keys(keys[:0], np.array([1.0, 0.0]), 3)) == 0
-    assert len(nearest_keys(keys, np.array([1.0, 0.0]), 10)) == 4
+def test_nearest_places_most_similar_first():
+    rng = np.random.default_rng(3)
+    keys = (rng.random((6, 10, 36)) < 0.2).astype(np.float32)
+    keys /= np.maximum(np.sqrt(keys.sum(axis=1, keepdims=True)), 1.0)
+    query = np.roll(keys[4], 5, axis=1)
+    order = nearest_places(keys, query, 3)
+    assert order[0] == 4 and len(order) == 3
+    score = similarities(keys, query)
+    assert list(order) == list(np.argsort(-score, kind="stable")[:3])
+    assert len(nearest_places(keys[:0], query, 3)) == 0
+    assert len(nearest_places(keys, query, 10)) == 6
 
 
 def _kidnapped():

@@ -194,6 +194,7 @@ def test_bad_final_pass_settings_are_refused(kwargs, message):
         ("overlap_candidates", -1, "overlap_candidates must be >= 0"),
         ("min_overlap", 1.5, "min_overlap must be in"),
         ("overlap_cell_m", 0.0, "overlap_cell_m and overlap_radius_m must be > 0"),
+        ("max_search_uncertainty_m", 0.0, "max_search_uncertainty_m must be > 0"),
     ],
 )
 def test_bad_overlap_settings_are_refused(field, value, message):
