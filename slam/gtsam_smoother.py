@@ -196,7 +196,7 @@ from slam.motion import (
     increment_jacobians,
     split_increment,
 )
-from slam.place_recognition import nearest_places, polar_key
+from slam.place_recognition import PlaceKeys, polar_key
 from slam.scan_matching import (
     Acceptance,
     MatchResult,
@@ -585,6 +585,7 @@ class _ScanKeyframe:
     t: float
     scan: Scan
     key: np.ndarray | None = None  # polar key (laser scans; slam.place_recognition)
+    place: int = -1  # its row in the smoother's PlaceKeys
     cells: np.ndarray | None = None  # footprint (slam.scan_overlap)
 
 
@@ -674,6 +675,7 @@ class GtsamSmoother(Localizer):
         # scan matching
         self._scans: list[_ScanKeyframe] = []
         self._since_place = 0  # place searches wanted since the last one (_place_closure)
+        self._places = PlaceKeys()  # the kept laser scans' polar keys
         # place matches held for a heading far from the graph's: (search, HeldMatch)
         self._place_doubts: list[tuple[int, HeldMatch]] = []
         self._turned_away = HeldMatches(config.loop.consensus)  # loop matches held
@@ -1117,12 +1119,13 @@ class GtsamSmoother(Localizer):
         prev = self._scans[-1] if self._scans else None
         odo = (self._scan_delta, self._scan_cov, max(self._kf - self._scan_kf0, 1), self._scan_gap)
         self._scan_gap = False
-        key = None
+        key, row = None, -1
         if isinstance(msg, LaserScan) and c.loop.place.enabled:
             pl = c.loop.place
             key = polar_key(msg, pl.rings, pl.sectors, pl.range_m)
+            row = self._places.add(key)
         cells = footprint(pts.points, c.loop.overlap_cell_m) if c.loop.by_overlap else None
-        self._scans.append(_ScanKeyframe(self._kf, msg.t, pts, key, cells))
+        self._scans.append(_ScanKeyframe(self._kf, msg.t, pts, key, row, cells))
         self._scan_delta = np.zeros(3)
         self._scan_cov = np.zeros((3, 3))
         self._scan_kf0 = self._kf
@@ -1378,9 +1381,10 @@ class GtsamSmoother(Localizer):
         ]
         if not old:
             return False
-        keys = np.array([self._scans[i].key for i in old])
+        rows = [self._scans[i].place for i in old]
         return any(
-            self._try_place(poses, old[r]) for r in nearest_places(keys, cur.key, pl.candidates)
+            self._try_place(poses, old[r])
+            for r in self._places.nearest(rows, cur.key, pl.candidates)
         )
 
     def _try_place(self, poses: np.ndarray, i: int) -> bool:
