@@ -584,8 +584,7 @@ class _ScanKeyframe:
     kf: int
     t: float
     scan: Scan
-    key: np.ndarray | None = None  # polar key (laser scans; slam.place_recognition)
-    place: int = -1  # its row in the smoother's PlaceKeys
+    place: int = -1  # its polar key's row in the smoother's PlaceKeys (laser scans), or -1
     cells: np.ndarray | None = None  # footprint (slam.scan_overlap)
 
 
@@ -1119,13 +1118,12 @@ class GtsamSmoother(Localizer):
         prev = self._scans[-1] if self._scans else None
         odo = (self._scan_delta, self._scan_cov, max(self._kf - self._scan_kf0, 1), self._scan_gap)
         self._scan_gap = False
-        key, row = None, -1
+        row = -1
         if isinstance(msg, LaserScan) and c.loop.place.enabled:
             pl = c.loop.place
-            key = polar_key(msg, pl.rings, pl.sectors, pl.range_m)
-            row = self._places.add(key)
+            row = self._places.add(polar_key(msg, pl.rings, pl.sectors, pl.range_m))
         cells = footprint(pts.points, c.loop.overlap_cell_m) if c.loop.by_overlap else None
-        self._scans.append(_ScanKeyframe(self._kf, msg.t, pts, key, row, cells))
+        self._scans.append(_ScanKeyframe(self._kf, msg.t, pts, row, cells))
         self._scan_delta = np.zeros(3)
         self._scan_cov = np.zeros((3, 3))
         self._scan_kf0 = self._kf
@@ -1365,7 +1363,7 @@ class GtsamSmoother(Localizer):
         loop = self.config.loop
         pl = loop.place
         cur = self._scans[-1]
-        if not pl.enabled or cur.key is None or not cur.key.any():
+        if not pl.enabled or cur.place < 0 or not self._places.saw_anything(cur.place):
             return False
         self._since_place += 1
         if self._since_place < pl.every:
@@ -1377,14 +1375,14 @@ class GtsamSmoother(Localizer):
         old = [
             i
             for i in range(len(self._scans) - loop.min_separation)
-            if self._scans[i].key is not None and along[-1] - along[i] >= pl.min_path_m
+            if self._scans[i].place >= 0 and along[-1] - along[i] >= pl.min_path_m
         ]
         if not old:
             return False
         rows = [self._scans[i].place for i in old]
         return any(
             self._try_place(poses, old[r])
-            for r in self._places.nearest(rows, cur.key, pl.candidates)
+            for r in self._places.nearest(rows, cur.place, pl.candidates)
         )
 
     def _try_place(self, poses: np.ndarray, i: int) -> bool:

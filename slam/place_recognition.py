@@ -45,22 +45,20 @@ def polar_key(
 
 def _spectra(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per key (N × rings × sectors): its columns' Fourier transform over the sectors,
-    that of the sectors it saw, and how many it saw — what `similarities` needs of a key,
-    computed once (PlaceKeys)."""
+    that of the sectors it saw, and how many it saw — all `similarities` needs of a key
+    or a query, computed once per key in PlaceKeys."""
     seen = (keys > 0).any(axis=1).astype(np.float64)
     return np.fft.rfft(keys, axis=2), np.fft.rfft(seen, axis=1), seen.sum(axis=1)
 
 
-def _similarities(spectra: tuple[np.ndarray, np.ndarray, np.ndarray], query: np.ndarray):
-    keys_f, seen_f, seen_n = spectra
-    sectors = query.shape[1]
+def _similarities(keys: tuple, query: tuple, sectors: int) -> np.ndarray:
+    """`similarities` from the keys' `_spectra` (N rows) and the query's (one row)."""
+    keys_f, seen_f, seen_n = keys
+    query_f, query_seen_f, query_n = query
     # circular cross-correlations over the sectors, every shift at once
-    num = np.fft.irfft(
-        np.einsum("nrk,rk->nk", keys_f, np.conj(np.fft.rfft(query, axis=1))), n=sectors, axis=1
-    )
-    seen_q = (np.asarray(query) > 0).any(axis=0).astype(np.float64)
-    both = np.fft.irfft(seen_f * np.conj(np.fft.rfft(seen_q)), n=sectors, axis=1)
-    either = seen_n[:, None] + seen_q.sum() - np.rint(both)
+    num = np.fft.irfft(np.einsum("nrk,rk->nk", keys_f, np.conj(query_f[0])), n=sectors, axis=1)
+    both = np.fft.irfft(seen_f * np.conj(query_seen_f[0]), n=sectors, axis=1)
+    either = seen_n[:, None] + query_n[0] - np.rint(both)
     return np.max(num / np.maximum(either, 1.0), axis=1)
 
 
@@ -71,7 +69,7 @@ def similarities(keys: np.ndarray, query: np.ndarray) -> np.ndarray:
     keys = np.asarray(keys, dtype=np.float32)
     if len(keys) == 0:
         return np.zeros(0)
-    return _similarities(_spectra(keys), query)
+    return _similarities(_spectra(keys), _spectra(np.asarray(query)[None]), keys.shape[2])
 
 
 def _best(score: np.ndarray, count: int) -> np.ndarray:
@@ -89,24 +87,27 @@ def nearest_places(keys: np.ndarray, query: np.ndarray, count: int) -> np.ndarra
 
 
 class PlaceKeys:
-    """The polar keys of a growing set of scans, each key's spectra (`_spectra`) computed
-    once, when it is added: a search over N old keys then costs one product per key
-    instead of N transforms (`nearest`: the same answers as `nearest_places`)."""
+    """The polar keys of a growing set of scans, kept as their spectra (`_spectra`),
+    computed once when a key is added: a search over N old keys then costs one product
+    per key instead of N transforms (`nearest`: the same answers as `nearest_places`)."""
 
     def __init__(self) -> None:
         self._arrays: tuple[np.ndarray, ...] = ()  # capacity doubles; rows ≥ size unused
         self._size = 0
+        self._sectors = 0
 
     def __len__(self) -> int:
         return self._size
 
     def add(self, key: np.ndarray) -> int:
         """Store a key (rings × sectors); returns its row."""
-        spectra = _spectra(np.asarray(key, dtype=np.float32)[None])
+        key = np.asarray(key, dtype=np.float32)
+        spectra = _spectra(key[None])
         if not self._arrays:
             self._arrays = tuple(np.zeros((64, *a.shape[1:]), a.dtype) for a in spectra)
-        elif self._arrays[0].shape[1:] != spectra[0].shape[1:]:
-            raise ValueError(f"a polar key of shape {np.shape(key)} does not match the stored keys")
+            self._sectors = key.shape[1]
+        elif key.shape != (self._arrays[0].shape[1], self._sectors):
+            raise ValueError(f"a polar key of shape {key.shape} does not match the stored keys")
         if self._size == len(self._arrays[0]):
             self._arrays = tuple(np.concatenate([a, np.zeros_like(a)]) for a in self._arrays)
         for stored, new in zip(self._arrays, spectra, strict=True):
@@ -114,13 +115,20 @@ class PlaceKeys:
         self._size += 1
         return self._size - 1
 
-    def nearest(self, rows: np.ndarray, query: np.ndarray, count: int) -> np.ndarray:
+    def saw_anything(self, row: int) -> bool:
+        """Whether the key at `row` has a return in any sector."""
+        return bool(self._spectra([row])[2][0] > 0)
+
+    def nearest(self, rows: np.ndarray, query: int, count: int) -> np.ndarray:
         """Of the stored keys at `rows`, the positions (into rows) of the `count` most
-        similar to `query`, most similar first."""
-        rows = np.asarray(rows, dtype=np.int64)
+        similar to the stored key at row `query`, most similar first."""
         if len(rows) == 0:
             return np.zeros(0, dtype=np.int64)
+        scores = _similarities(self._spectra(rows), self._spectra([query]), self._sectors)
+        return _best(scores, count)
+
+    def _spectra(self, rows) -> tuple[np.ndarray, ...]:
+        rows = np.asarray(rows, dtype=np.int64)
         if rows.min() < 0 or rows.max() >= self._size:
             raise IndexError(f"rows must lie in [0, {self._size}), got {rows.min()}..{rows.max()}")
-        spectra = tuple(a[rows] for a in self._arrays)
-        return _best(_similarities(spectra, np.asarray(query, dtype=np.float32)), count)
+        return tuple(a[rows] for a in self._arrays)

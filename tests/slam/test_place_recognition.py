@@ -69,20 +69,25 @@ def test_nearest_places_most_similar_first():
 
 def test_stored_keys_answer_as_the_keys_themselves():
     """PlaceKeys keeps each key's spectra from when it was added (past its first
-    capacity of 64): any subset of its rows ranks as nearest_places ranks those keys."""
+    capacity of 64): any subset of its rows ranks, against a stored query, as
+    nearest_places ranks those keys."""
     rng = np.random.default_rng(5)
     keys = (rng.random((150, 10, 36)) < 0.2).astype(np.float32)
     keys /= np.maximum(np.sqrt(keys.sum(axis=1, keepdims=True)), 1.0)
-    store = PlaceKeys()
-    assert [store.add(k) for k in keys] == list(range(150)) and len(store) == 150
+    keys[3] = 0.0  # a scan without returns
     query = np.roll(keys[97], 7, axis=1)
+    store = PlaceKeys()
+    assert [store.add(k) for k in [*keys, query]] == list(range(151)) and len(store) == 151
     for rows in (np.arange(150), np.arange(0, 150, 3), np.array([97, 2, 140])):
-        got = store.nearest(rows, query, 5)
+        got = store.nearest(rows, 150, 5)
         np.testing.assert_array_equal(got, nearest_places(keys[rows], query, 5))
-    assert store.nearest(np.arange(150), query, 1)[0] == 97
-    assert len(store.nearest(np.zeros(0, int), query, 5)) == 0
+    assert store.nearest(np.arange(150), 150, 1)[0] == 97
+    assert len(store.nearest(np.zeros(0, int), 150, 5)) == 0
+    assert store.saw_anything(150) and not store.saw_anything(3)
     with pytest.raises(IndexError, match="rows must lie in"):
-        store.nearest(np.array([150]), query, 1)
+        store.nearest(np.array([151]), 150, 1)
+    with pytest.raises(IndexError, match="rows must lie in"):
+        store.nearest(np.array([0]), 151, 1)
     with pytest.raises(ValueError, match="does not match the stored keys"):
         store.add(np.zeros((10, 72), np.float32))
 
