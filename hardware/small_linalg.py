@@ -15,8 +15,9 @@ numpy accumulates it in SIMD vectors of the CPU's width (2, 4 or 8 doubles, with
 where there is one; numpy's einsum_sumprod.c.src) and adds the lanes at the end, so a
 CPU with another vector width can round its last bits differently. Note the order is not
 the written one either: on this AVX2 machine a 3-term sum over a transposed operand is
-(p0 + p2) + p1. The scan path (slam.scan_matching, slam.gtsam_smoother's covariances, the
-CARMEN importer's odometry fit) uses these instead of `@` and np.linalg.
+(p0 + p2) + p1. The scan path (slam.scan_matching, the covariances of slam.gtsam_smoother
+and slam.scan_graph, the CARMEN importer's odometry fit) uses these instead of `@` and
+np.linalg.
 """
 
 from __future__ import annotations

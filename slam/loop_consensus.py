@@ -1,6 +1,6 @@
 """Loop closures accepted together when each alone would be turned away.
 
-A scan-based graph (slam.gtsam_smoother) searches each new scan's loop closures around
+A scan-based graph (slam.scan_graph) searches each new scan's loop closures around
 its estimate and accepts one when its match is strong enough (the loop gate's inlier
 fraction) and agrees with the estimate (a chi-squared gate on the graph's relative
 covariance). On a revisit after a stretch that drifted, the matches against the old

@@ -14,7 +14,7 @@ a place (an old kept scan within 3 m and 1 rad, 20 m or more back along the path
 three most similar keys held a true neighbour on freiburg-campus for 79 % (the ring key
 it replaced, each ring's share of sectors with a return: 63 %) and on fhw for 74 %
 (66 %) (BENCHMARKS.md). The candidates are then verified by matching
-(slam.gtsam_smoother).
+(slam.scan_graph).
 """
 
 from __future__ import annotations

@@ -237,7 +237,7 @@ def test_sightings_during_an_odometry_gap_place_the_walker_across_it():
 
 
 def test_a_gap_match_needs_a_candidate_to_refine():
-    from slam.gtsam_smoother import SequentialGate
+    from slam.scan_graph import SequentialGate
 
     with pytest.raises(ValueError, match="unknown_candidates must be >= 1, got 0"):
         SequentialGate(unknown_candidates=0)

@@ -13,8 +13,9 @@ from experiments.metrics import ate
 from hardware.calibration import WalkerCalibration
 from hardware.messages import LaserScan, VelocityOdometry
 from slam.base import create
-from slam.gtsam_smoother import GtsamConfig, LoopClosures, PlaceRecognition
+from slam.gtsam_smoother import GtsamConfig
 from slam.place_recognition import PlaceKeys, nearest_places, polar_key, similarities
+from slam.scan_graph import LoopClosures, PlaceRecognition
 from slam.trajectory import Trajectory
 
 

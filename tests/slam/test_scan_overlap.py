@@ -11,7 +11,8 @@ from laser_worlds import HALL, box_walls, drive_messages, render_scan
 from experiments.metrics import ate
 from hardware.calibration import WalkerCalibration
 from slam.base import create
-from slam.gtsam_smoother import FinalPass, GtsamConfig, LoopClosures
+from slam.gtsam_smoother import GtsamConfig
+from slam.scan_graph import FinalPass, LoopClosures
 from slam.scan_matching import laser_points
 from slam.scan_overlap import chosen_by_overlap, footprint, overlap
 
