@@ -12,6 +12,13 @@ thinner walls placed the scans more consistently). --localizer grid-rbpf runs
 the per-particle-map filter instead (GMapping's own algorithm, the one that made the
 corrected poses), and --spread then replays seeds 1 and 2 as well.
 
+With --spread the runs of a log are also compared with each other (ATE of one path
+against another, after alignment). For grid-rbpf's seeds that is how far apart two
+runs of GMapping's algorithm land on that log: 0.02 m on freiburg-101, 0.1–0.3 m on
+acapulco, belgioioso, edmonton and fhw (BENCHMARKS.md, "Laser logs: GMapping's own
+algorithm, three seeds"), which bounds how closely any run can be expected to agree with
+GMapping's poses, one such run.
+
 With --spread the same log is also replayed with the scan matcher's voxel size a tenth
 smaller and larger (`gtsam.scan_match.voxel_m` 0.045 and 0.055 m instead of 0.05): a
 change that should not matter, which shows how far a log's ATE moves for no reason.
@@ -39,6 +46,7 @@ Usage: .venv/bin/python benchmarks/bench_laser_logs.py [--spread | --odometry]
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import statistics
 import sys
@@ -58,13 +66,15 @@ TARGET_M = 0.15
 # this checkout's code, also in the worker processes (they inherit the path)
 sys.path.insert(0, str(REPO))
 
+from slam.trajectory import Trajectory  # noqa: E402
+
 
 def run(
     log: str, localizer: str, sets: tuple[str, ...], variant: str | None
-) -> tuple[str, float | None, float, tuple[float, ...]]:
+) -> tuple[str, float | None, float, tuple[float, ...], np.ndarray | None]:
     """(log, ATE [m], real-time factor, the wall spread [m] of its map within 25 and 50
-    cm, then of the map at GMapping's poses) of one replay; `variant` one more --set (the
-    spread's)."""
+    cm, then of the map at GMapping's poses, the estimate at GMapping's scan times: t, x,
+    y, θ per row) of one replay; `variant` one more --set (the spread's)."""
     from experiments.config import parse_sets
     from experiments.run import replay_log
     from hardware.datasets import open_dataset
@@ -82,14 +92,32 @@ def run(
             )  # fmt: skip
         except WalkerSlamError as e:  # e.g. grid-rbpf's maps past their memory budget
             print(f"{log}: {e}", flush=True)
-            return log, None, math.nan, (math.nan,) * 4
+            return log, None, math.nan, (math.nan,) * 4, None
+        est = Trajectory.read_tum(Path(tmp) / "trajectory.tum")
+        ref = Trajectory.read_tum(Path(tmp) / "groundtruth.tum")
+    t = ref.t[(ref.t >= est.t[0]) & (ref.t <= est.t[-1])]
+    path = np.column_stack([t, est.interpolate(t)])
     m = result.metrics
     walls = tuple(
         m.get(f"{who}wall_spread{scale}_m", math.nan)
         for who in ("", "reference_")
         for scale in ("", "_coarse")
     )
-    return log, m.get("ate_rmse_m"), m["realtime_factor"], walls
+    return log, m.get("ate_rmse_m"), m["realtime_factor"], walls, path
+
+
+def apart(paths: list[np.ndarray | None]) -> list[float]:
+    """Each pair of runs' paths against each other (ATE after SE(2) alignment [m]): the
+    first against the second and the third, then the second against the third."""
+    from experiments.metrics import ate
+
+    def traj(p: np.ndarray) -> Trajectory:
+        return Trajectory(p[:, 0], p[:, 1:])
+
+    return [
+        math.nan if a is None or b is None else ate(traj(a), traj(b))["ate_rmse_m"]
+        for a, b in itertools.combinations(paths, 2)
+    ]
 
 
 def odometry_fit(log: str) -> tuple[str, int, np.ndarray, np.ndarray]:
@@ -167,8 +195,10 @@ def main() -> int:
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         results = list(pool.map(run, *zip(*jobs, strict=True)))
     by_log: dict[str, list[tuple[float | None, float, tuple[float, ...]]]] = {}
-    for log, ate, x, walls in results:
+    paths: dict[str, list[np.ndarray | None]] = {}
+    for log, ate, x, walls, path in results:
         by_log.setdefault(log, []).append((ate, x, walls))
+        paths.setdefault(log, []).append(path)
     settings = " ".join(args.sets)
     print(f"{loc} on {len(names)} corrected laser logs {settings}".rstrip())
     head = "ATE"
@@ -186,6 +216,11 @@ def main() -> int:
         _, x, w = by_log[log][0]
         walls = f"{100 * w[0]:5.2f} / {100 * w[1]:5.2f}; {100 * w[2]:5.2f} / {100 * w[3]:5.2f}"
         print(f"{log:18s} {text:>40s}  {x:6.1f}  {walls}{'' if ok else f'  (ATE > {TARGET_M})'}")
+    if args.spread:
+        pairs = " / ".join(f"{a}–{b}" for a, b in itertools.combinations(range(len(variants)), 2))
+        print(f"the runs against each other (ATE [m], runs {pairs}; 0 the default):")
+        for log in names:
+            print(f"{log:18s} {' / '.join(f'{d:.3f}' for d in apart(paths[log])):>40s}")
     firsts = [by_log[n][0][0] for n in names if by_log[n][0][0] is not None]
     print(
         f"target ATE <= {TARGET_M} m: {met} of {len(names)} logs; median ATE "
