@@ -725,7 +725,7 @@ def list_names(
     from rich.text import Text
 
     from control.base import CONTROLLERS
-    from experiments.config import describe
+    from experiments.config import describe, explained_in
     from experiments.mitigations import MITIGATIONS
     from hardware.datasets import FORMATS
     from hardware.devices import DEPTH_CAMERAS, TAG_CAMERAS, forms
@@ -754,6 +754,12 @@ def list_names(
             for path, default, typ in describe(spec.config_type):
                 table.add_row(*(Text(v) for v in (f"{name}.{path}", default, typ)))
             console.print(table)
+            groups = explained_in(spec.config_type)
+            if groups:
+                console.print("explained in (python -m pydoc CLASS):", highlight=False)
+                width = max(len(name) + 2 + len(g) for g, _ in groups)
+                for group, where in groups:
+                    console.print(f"  {name + '.' + group + '*':{width}s} {where}", highlight=False)
             return
     valid = sorted(n for reg in (*registries, MITIGATIONS) for n in reg.names())
     raise UnknownNameError("localizer, controller, dataset format or mitigation", name, valid)

@@ -275,6 +275,20 @@ def describe(
     return out
 
 
+def explained_in(config_type: type | None, prefix: str = "") -> list[tuple[str, str]]:
+    """(group of settings, the config class whose docstring explains it) for a config and
+    each nested group in it, in field order: ("", "slam.gtsam_smoother.GtsamConfig"),
+    ("scan.", "slam.scan_graph.SequentialScans"), ... (what `walkerslam list NAME` shows
+    below the settings)."""
+    if config_type is None:
+        return []
+    out = [(prefix, f"{config_type.__module__}.{config_type.__qualname__}")]
+    for name, typ in _field_types(config_type).items():
+        if dataclasses.is_dataclass(typ):
+            out += explained_in(typ, f"{prefix}{name}.")
+    return out
+
+
 def _type_name(typ: Any) -> str:
     if typing.get_origin(typ) is not None:
         return str(typ).replace("typing.", "")

@@ -1,6 +1,7 @@
 """The CLI as a user meets it: one-line errors on bad input, and the demo end to end."""
 
 import contextlib
+import importlib
 import io
 import json
 import subprocess
@@ -258,6 +259,16 @@ def test_list_shows_a_configs_settings():
         res.stdout
     )
     assert any("gtsam.noise.brake_aware" in ln and "bool" in ln for ln in lines)
+    # below the settings: where each group is explained, classes that exist with docstrings
+    start = lines.index("explained in (python -m pydoc CLASS):")
+    groups = dict(ln.split() for ln in lines[start + 1 :])
+    assert groups["gtsam.*"] == "slam.gtsam_smoother.GtsamConfig"
+    assert groups["gtsam.scan.*"] == "slam.scan_graph.SequentialScans"
+    assert groups["gtsam.loop.final.gate.*"] == "slam.scan_matching.Acceptance"
+    assert len(groups) == 18
+    for where in groups.values():
+        module, cls = where.rsplit(".", 1)
+        assert getattr(importlib.import_module(module), cls).__doc__, where
     assert "grid-rbpf" in walkerslam("list").stdout
     assert_one_line_error(walkerslam("list", "nope"), "nope", "gtsam")
 
