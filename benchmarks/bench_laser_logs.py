@@ -16,8 +16,8 @@ With --spread the runs of a log are also compared with each other (ATE of one pa
 against another, after alignment). For grid-rbpf's seeds that is how far apart two
 runs of GMapping's algorithm land on that log: 0.02 m on freiburg-101, 0.1–0.3 m on
 acapulco, belgioioso, edmonton and fhw (BENCHMARKS.md, "Laser logs: GMapping's own
-algorithm, three seeds"), which bounds how closely any run can be expected to agree with
-GMapping's poses, one such run.
+algorithm, three seeds"): a scale for how closely any run can be expected to agree
+with GMapping's poses, themselves one such run.
 
 With --spread the same log is also replayed with the scan matcher's voxel size a tenth
 smaller and larger (`gtsam.scan_match.voxel_m` 0.045 and 0.055 m instead of 0.05): a
