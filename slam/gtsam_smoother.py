@@ -90,8 +90,6 @@ from slam.absolute import (
     AbsoluteObservation,
     absolute_observation,
     fused_count,
-    offset_position,
-    offset_position_jacobian,
 )
 from slam.association import (
     CHI2_999,
@@ -101,6 +99,7 @@ from slam.association import (
     nearest_neighbour,
 )
 from slam.base import Localizer, LocalizerConfig, PoseEstimate
+from slam.gtsam_factors import position_factor, robust_noise
 from slam.gtsam_slip import slip_odometry_factor, slip_walk_factor
 from slam.measurement import (
     BEARING_SIGMA_RAD,
@@ -122,7 +121,7 @@ from slam.motion import (
     increment_jacobians,
     split_increment,
 )
-from slam.scan_graph import LoopClosures, ScanGraph, SequentialScans, robust_noise
+from slam.scan_graph import LoopClosures, ScanGraph, SequentialScans
 from slam.scan_matching import MatchResult, ScanMatchConfig, relative_guess
 from slam.slip import SlipEstimation, increment_with_slip, slip_diagnostics
 from slam.trajectory import Trajectory, spread_corrections
@@ -250,26 +249,6 @@ class GtsamConfig(LocalizerConfig):
             raise ValueError("yaw_sigma_rad must be > 0 and yaw_sigma_per_m2 >= 0")
         if self.gate_chi2 is not None and not self.gate_chi2 >= 0:
             raise ValueError(f"gate_chi2 must be >= 0 (or None), got {self.gate_chi2}")
-
-
-def position_factor(
-    key: int, z: np.ndarray, offset: np.ndarray, noise: gtsam.noiseModel.Base
-) -> gtsam.CustomFactor:
-    """A GPS-like factor on Pose2 `key`: the map-frame position of the point `offset`
-    (dx, dy) in the pose's frame is measured as z; error = position − z, with the
-    Jacobian of slam.absolute.offset_position_jacobian (checked numerically in the
-    tests). With offset 0 it is gtsam.PoseTranslationPrior2D."""
-    z = np.array(z, dtype=float)
-    offset = np.array(offset, dtype=float)
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians) -> np.ndarray:
-        p = values.atPose2(this.keys()[0])
-        pose = np.array([p.x(), p.y(), p.theta()])
-        if jacobians is not None:
-            jacobians[0] = offset_position_jacobian(pose, offset)
-        return offset_position(pose, offset) - z
-
-    return gtsam.CustomFactor(noise, [key], error)
 
 
 class GtsamSmoother(ScanGraph, Localizer):

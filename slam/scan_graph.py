@@ -92,10 +92,11 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 
-from hardware.choices import Choice, coerce
+from hardware.choices import coerce
 from hardware.geometry import compose, rotation, wrap_angle
 from hardware.messages import DepthFrame, LaserScan
 from hardware.small_linalg import congruence, dot, eigh2, solve
+from slam.gtsam_factors import RobustKernel, robust_noise
 from slam.loop_consensus import HeldMatch, HeldMatches, LoopConsensus, correction
 from slam.place_recognition import PlaceKeys, polar_key
 from slam.scan_matching import (
@@ -110,14 +111,6 @@ from slam.scan_matching import (
     relative_guess,
 )
 from slam.scan_overlap import chosen_by_overlap, footprint, overlap
-
-
-class RobustKernel(Choice):
-    """The M-estimator of a robust factor (gtsam.noiseModel.mEstimator), or none."""
-
-    HUBER = "huber"
-    CAUCHY = "cauchy"
-    NONE = "none"
 
 
 @dataclass(frozen=True)
@@ -360,18 +353,6 @@ class _ScanKeyframe:
     scan: Scan
     place: int = -1  # its polar key's row in the smoother's PlaceKeys (laser scans), or -1
     cells: np.ndarray | None = None  # footprint (slam.scan_overlap)
-
-
-def robust_noise(kind: str, k: float, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
-    """base, robust with the M-estimator `kind` (RobustKernel) at k, or base itself."""
-    if kind == "none":
-        return base
-    est = (
-        gtsam.noiseModel.mEstimator.Huber.Create(k)
-        if kind == "huber"
-        else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
-    )
-    return gtsam.noiseModel.Robust.Create(est, base)
 
 
 def body_covariance(cov: np.ndarray, theta: float) -> np.ndarray:

@@ -22,7 +22,7 @@ from hardware.messages import CompassHeading, PositionFix, VelocityOdometry
 from slam.absolute import AbsoluteConfig, absolute_observation
 from slam.base import LOCALIZERS, create
 from slam.ekf_slam import EkfSlam, EkfSlamConfig
-from slam.gtsam_smoother import position_factor
+from slam.gtsam_factors import position_factor
 from slam.particle_filter import ParticleFilter, ParticleFilterConfig
 
 CAL = WalkerCalibration()
