@@ -29,7 +29,9 @@ Each kept scan is matched
   with the match's covariance (robust: `scan.gate.robust`, `scan.gate.robust_k`), in addition to
   the odometry factors; accepted when its inlier fraction ≥ `scan.gate.min_inlier_fraction`,
   conflict fraction ≤ `scan.gate.max_conflict_fraction` and ambiguity ≤
-  `scan.gate.max_ambiguity` (`slam.scan_matching.MatchResult`);
+  `scan.gate.max_ambiguity` (`slam.scan_matching.MatchResult`); a rejected one is counted
+  in the diagnostics by each test it fails (`scan_rejected_conflict`, ...:
+  slam.scan_matching.REJECTIONS; outdoors on freiburg-campus most fail the conflict test);
 - for loop closures against older kept scans (at least `loop.min_separation` kept scans
   back) within `loop.search_radius_m` plus the search window of the current estimate.
   The `loop.max_candidates` nearest (one per stretch of neighbouring scans) are tried,
@@ -100,6 +102,7 @@ from slam.gtsam_factors import RobustKernel, robust_noise
 from slam.loop_consensus import HeldMatch, HeldMatches, LoopConsensus, correction
 from slam.place_recognition import PlaceKeys, polar_key
 from slam.scan_matching import (
+    REJECTIONS,
     Acceptance,
     MatchResult,
     Reference,
@@ -399,6 +402,7 @@ class ScanGraph:
                 scans_kept=0,
                 scan_factors=0,
                 scan_rejected=0,
+                **{f"scan_rejected_{why}": 0 for why in REJECTIONS},
                 loop_candidates=0,
                 loop_closures=0,
                 loop_rejected=0,
@@ -503,6 +507,8 @@ class ScanGraph:
                 self._adapt_odometry(odo, model, res)
         else:
             self.counts["scan_rejected"] += 1
+            for why in c.scan.gate.failures(res):
+                self.counts[f"scan_rejected_{why}"] += 1
 
     def _loop_closures(self, poses: np.ndarray) -> None:
         """Match the newest kept scan against the nearest old ones; add the accepted

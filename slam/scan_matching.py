@@ -151,6 +151,12 @@ class ScanMatchConfig:
             raise ValueError("refine_candidates and icp_iterations must be >= 1")
 
 
+# why a match is rejected (MatchResult.failures): ICP did not converge, too few inliers,
+# too many points in the reference's free space, a rival pose nearly as good, too little
+# constraint, a covariance that is not finite
+REJECTIONS = ("unconverged", "inliers", "conflict", "ambiguity", "constraint", "covariance")
+
+
 @dataclass(frozen=True, eq=False)
 class MatchResult:
     """Pose (x, y, θ) of the query frame in the reference frame, its 3×3 covariance and
@@ -171,6 +177,25 @@ class MatchResult:
     score: float = math.nan  # correlative score of the winner's start
     ambiguity: float = 0.0
 
+    def failures(
+        self,
+        min_inlier_fraction: float,
+        max_conflict_fraction: float = 1.0,
+        max_ambiguity: float = 1.0,
+        min_constraint: float = 0.0,
+    ) -> tuple[str, ...]:
+        """The tests this match fails at these thresholds (none: accepted), each named
+        by one of REJECTIONS; a NaN fails its test."""
+        failed = (
+            not self.converged,
+            not self.inlier_fraction >= min_inlier_fraction,
+            not self.conflict_fraction <= max_conflict_fraction,
+            not self.ambiguity <= max_ambiguity,
+            not self.constraint >= min_constraint,
+            not bool(np.all(np.isfinite(self.covariance))),
+        )
+        return tuple(name for name, f in zip(REJECTIONS, failed, strict=True) if f)
+
     def accepted(
         self,
         min_inlier_fraction: float,
@@ -178,13 +203,8 @@ class MatchResult:
         max_ambiguity: float = 1.0,
         min_constraint: float = 0.0,
     ) -> bool:
-        return (
-            self.converged
-            and self.inlier_fraction >= min_inlier_fraction
-            and self.conflict_fraction <= max_conflict_fraction
-            and self.ambiguity <= max_ambiguity
-            and self.constraint >= min_constraint
-            and bool(np.all(np.isfinite(self.covariance)))
+        return not self.failures(
+            min_inlier_fraction, max_conflict_fraction, max_ambiguity, min_constraint
         )
 
 
@@ -201,7 +221,11 @@ class Acceptance:
     min_constraint: float = 0.0
 
     def accepts(self, res: MatchResult) -> bool:
-        return res.accepted(
+        return not self.failures(res)
+
+    def failures(self, res: MatchResult) -> tuple[str, ...]:
+        """The tests `res` fails here (MatchResult.failures): why it is rejected."""
+        return res.failures(
             self.min_inlier_fraction,
             self.max_conflict_fraction,
             self.max_ambiguity,

@@ -22,6 +22,9 @@ from hardware.messages import LaserScan, VelocityOdometry
 from slam.base import create
 from slam.gtsam_smoother import GtsamConfig
 from slam.scan_matching import (
+    REJECTIONS,
+    Acceptance,
+    MatchResult,
     Reference,
     ScanMatchConfig,
     correlative_search,
@@ -120,6 +123,25 @@ def test_unrelated_scans_are_rejected():
     good = laser_points(render_scan(ROOM, (4.3, 4.2, 0.2), noise_m=0.01, rng=rng), voxel_m=0.05)
     ok = match(ref, good, np.array([0.1, -0.1, 0.1]), 1.0, 0.4, CFG)
     assert ok.accepted(0.5, max_conflict_fraction=0.1, max_ambiguity=0.9)
+    assert ok.failures(0.5, max_conflict_fraction=0.1, max_ambiguity=0.9) == ()
+
+
+def test_a_rejected_match_names_every_test_it_fails():
+    res = MatchResult(
+        pose=np.zeros(3), covariance=np.eye(3), inlier_fraction=0.2, inliers=20, points=100,
+        rmse_m=0.05, iterations=10, converged=True, conflict_fraction=0.3, constraint=0.5,
+        ambiguity=0.95,
+    )  # fmt: skip
+    gate = Acceptance(min_inlier_fraction=0.3, max_conflict_fraction=0.2, max_ambiguity=0.9)
+    assert gate.failures(res) == ("inliers", "conflict", "ambiguity")
+    assert not gate.accepts(res)
+    assert Acceptance(0.1, 0.5, 1.0).failures(res) == () and Acceptance(0.1, 0.5, 1.0).accepts(res)
+    # a NaN fails its test, as does a covariance that is not finite or an ICP that stopped
+    odd = replace(
+        res, inlier_fraction=math.nan, converged=False, covariance=np.full((3, 3), np.inf)
+    )
+    assert Acceptance(0.1, 0.5, 1.0).failures(odd) == ("unconverged", "inliers", "covariance")
+    assert set(gate.failures(odd)) <= set(REJECTIONS)
 
 
 def test_a_corridor_is_degenerate_along_its_axis():
