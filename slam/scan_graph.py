@@ -498,7 +498,8 @@ class ScanGraph:
             count = c.scan.gate.unknown_candidates
         guess = relative_guess(poses[prev.kf], poses[cur.kf])
         res = match(ref, cur.scan, guess, wxy, wth, self._matcher, count)
-        if c.scan.gate.accepts(res):
+        failed = c.scan.gate.failures(res)
+        if not failed:
             self._add_match(prev.kf, cur.kf, res, c.scan.gate.robust, c.scan.gate.robust_k)
             self.counts["scan_factors"] += 1
             self._flush()
@@ -507,7 +508,7 @@ class ScanGraph:
                 self._adapt_odometry(odo, model, res)
         else:
             self.counts["scan_rejected"] += 1
-            for why in c.scan.gate.failures(res):
+            for why in failed:
                 self.counts[f"scan_rejected_{why}"] += 1
 
     def _loop_closures(self, poses: np.ndarray) -> None:

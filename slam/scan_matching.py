@@ -151,7 +151,7 @@ class ScanMatchConfig:
             raise ValueError("refine_candidates and icp_iterations must be >= 1")
 
 
-# why a match is rejected (MatchResult.failures): ICP did not converge, too few inliers,
+# why a match is rejected (Acceptance.failures): ICP did not converge, too few inliers,
 # too many points in the reference's free space, a rival pose nearly as good, too little
 # constraint, a covariance that is not finite
 REJECTIONS = ("unconverged", "inliers", "conflict", "ambiguity", "constraint", "covariance")
@@ -177,40 +177,10 @@ class MatchResult:
     score: float = math.nan  # correlative score of the winner's start
     ambiguity: float = 0.0
 
-    def failures(
-        self,
-        min_inlier_fraction: float,
-        max_conflict_fraction: float = 1.0,
-        max_ambiguity: float = 1.0,
-        min_constraint: float = 0.0,
-    ) -> tuple[str, ...]:
-        """The tests this match fails at these thresholds (none: accepted), each named
-        by one of REJECTIONS; a NaN fails its test."""
-        failed = (
-            not self.converged,
-            not self.inlier_fraction >= min_inlier_fraction,
-            not self.conflict_fraction <= max_conflict_fraction,
-            not self.ambiguity <= max_ambiguity,
-            not self.constraint >= min_constraint,
-            not bool(np.all(np.isfinite(self.covariance))),
-        )
-        return tuple(name for name, f in zip(REJECTIONS, failed, strict=True) if f)
-
-    def accepted(
-        self,
-        min_inlier_fraction: float,
-        max_conflict_fraction: float = 1.0,
-        max_ambiguity: float = 1.0,
-        min_constraint: float = 0.0,
-    ) -> bool:
-        return not self.failures(
-            min_inlier_fraction, max_conflict_fraction, max_ambiguity, min_constraint
-        )
-
 
 @dataclass(frozen=True)
 class Acceptance:
-    """When a match is accepted (MatchResult.accepted): its inlier fraction at least
+    """When a match is accepted (no `failures`): its inlier fraction at least
     min_inlier_fraction, conflict fraction and ambiguity at most max_conflict_fraction
     and max_ambiguity, `constraint` at least min_constraint (0: a corridor, its position
     along it unmeasured). The thresholds of every gate a match passes."""
@@ -224,13 +194,17 @@ class Acceptance:
         return not self.failures(res)
 
     def failures(self, res: MatchResult) -> tuple[str, ...]:
-        """The tests `res` fails here (MatchResult.failures): why it is rejected."""
-        return res.failures(
-            self.min_inlier_fraction,
-            self.max_conflict_fraction,
-            self.max_ambiguity,
-            self.min_constraint,
+        """The tests `res` fails at these thresholds (none: accepted), each named by one
+        of REJECTIONS: why it is rejected. A NaN fails its test."""
+        failed = (
+            not res.converged,
+            not res.inlier_fraction >= self.min_inlier_fraction,
+            not res.conflict_fraction <= self.max_conflict_fraction,
+            not res.ambiguity <= self.max_ambiguity,
+            not res.constraint >= self.min_constraint,
+            not bool(np.all(np.isfinite(res.covariance))),
         )
+        return tuple(name for name, f in zip(REJECTIONS, failed, strict=True) if f)
 
 
 # ---------------------------------------------------------------------------------------

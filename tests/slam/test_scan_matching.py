@@ -47,6 +47,8 @@ def _err(a, b) -> tuple[float, float]:
 
 
 CFG = ScanMatchConfig()
+# the loop gate's thresholds (slam.scan_graph.LoopClosures.gate)
+GATE = Acceptance(min_inlier_fraction=0.5, max_conflict_fraction=0.1, max_ambiguity=0.9)
 
 # ---------------------------------------------------------------------------------------
 # the matcher
@@ -90,7 +92,7 @@ def test_match_finds_a_far_start_with_partial_overlap_and_noise():
     res = match(ref, query, guess, window_xy=1.2, window_theta=0.55, config=CFG)
     trans, rot = _err(true, res.pose)
     assert trans < 0.02 and rot < math.radians(0.5)
-    assert res.accepted(0.5, max_conflict_fraction=0.1, max_ambiguity=0.9)
+    assert GATE.accepts(res)
 
 
 def test_a_wide_window_is_searched_on_two_levels_to_the_same_optimum():
@@ -118,12 +120,12 @@ def test_unrelated_scans_are_rejected():
     ref = Reference(laser_points(render_scan(ROOM, (4.0, 4.5, 0.0), noise_m=0.01, rng=rng)), CFG)
     query = laser_points(render_scan(HALL, (6.0, 1.5, 0.4), noise_m=0.01, rng=rng), voxel_m=0.05)
     res = match(ref, query, np.zeros(3), window_xy=1.0, window_theta=0.4, config=CFG)
-    assert not res.accepted(0.5, max_conflict_fraction=0.1, max_ambiguity=0.9)
+    assert not GATE.accepts(res)
     # ... while the same thresholds accept the right place
     good = laser_points(render_scan(ROOM, (4.3, 4.2, 0.2), noise_m=0.01, rng=rng), voxel_m=0.05)
     ok = match(ref, good, np.array([0.1, -0.1, 0.1]), 1.0, 0.4, CFG)
-    assert ok.accepted(0.5, max_conflict_fraction=0.1, max_ambiguity=0.9)
-    assert ok.failures(0.5, max_conflict_fraction=0.1, max_ambiguity=0.9) == ()
+    assert GATE.accepts(ok)
+    assert GATE.failures(ok) == ()
 
 
 def test_a_rejected_match_names_every_test_it_fails():
