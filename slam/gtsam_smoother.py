@@ -251,7 +251,7 @@ class GtsamConfig(LocalizerConfig):
             raise ValueError(f"gate_chi2 must be >= 0 (or None), got {self.gate_chi2}")
 
 
-class GtsamSmoother(ScanGraph, Localizer):
+class GtsamSmoother(Localizer):
     revises_past = True
 
     def __init__(self, config: GtsamConfig, calibration: WalkerCalibration) -> None:
@@ -309,7 +309,7 @@ class GtsamSmoother(ScanGraph, Localizer):
         self._delta_jk = np.zeros((3, 2))
         self._held: list[LandmarkObservation] = []  # align_observations: not yet placed
         self.sightings = Sightings(calibration)
-        self._init_scans()  # slam.scan_graph
+        self.scans = ScanGraph(self)  # the scan half (slam.scan_graph)
 
     # -- inputs -----------------------------------------------------------------------
     def process(self, msg: Message) -> None:
@@ -330,7 +330,7 @@ class GtsamSmoother(ScanGraph, Localizer):
         elif (fix := absolute_observation(msg, self.config.absolute)) is not None:
             self._absolute(fix)
         elif self.config.scan_matching and isinstance(msg, LaserScan | DepthFrame):
-            self._scan(msg)
+            self.scans.add(msg)
         if self._kf < 0 and self.odometry.has_odometry:
             self._start(msg.t)
 
@@ -351,7 +351,7 @@ class GtsamSmoother(ScanGraph, Localizer):
         if inc.unknown:
             var_s, var_th = np.diag(inc.cov)
             self._unknown += np.diag([var_s, var_s, var_th])
-            self._scan_gap = True
+            self.scans.unmeasured()
             self.counts["odometry_gaps"] += 1
             return
         if self._slip:
@@ -419,15 +419,11 @@ class GtsamSmoother(ScanGraph, Localizer):
         if jk is not None:
             self._delta_jk = matmul(f, self._delta_jk) + matmul(g, jk)
         self._delta = apply_increment(self._delta, ds, dth)
-        if not self._walk:
-            added = congruence(g, q)
-        self._delta_cov = congruence(f, self._delta_cov) + added
+        self._delta_cov = congruence(f, self._delta_cov) + (
+            added if self._walk else congruence(g, q)
+        )
         if c.scan_matching:
-            f, g = increment_jacobians(self._scan_delta[2], ds, dth)
-            self._scan_delta = apply_increment(self._scan_delta, ds, dth)
-            if not self._walk:
-                added = congruence(g, q)
-            self._scan_cov = congruence(f, self._scan_cov) + added
+            self.scans.integrate(ds, dth, added if self._walk else None, q)
 
     def _keyframe_due(self, t: float) -> bool:
         c = self.config
@@ -718,7 +714,7 @@ class GtsamSmoother(ScanGraph, Localizer):
 
     def finish(self) -> None:
         """The source has ended: the scan half's final pass (slam.scan_graph.FinalPass)."""
-        self._final_passes()
+        self.scans.finish()
 
     def _flush(self) -> None:
         if self._graph.size() == 0 and self._values.size() == 0:

@@ -1,7 +1,7 @@
 """The scan half of the `gtsam` smoother: scans kept as keyframes, matched to the ones
 before them, loop closures around the estimate and by place recognition, and a final
-pass when the source ends. `ScanGraph` is mixed into slam.gtsam_smoother.GtsamSmoother,
-whose graph, iSAM2 and keyframes it adds its factors to; its settings are the smoother's
+pass when the source ends. slam.gtsam_smoother.GtsamSmoother owns a `ScanGraph`, which
+adds its factors to the smoother's graph, iSAM2 and keyframes; its settings are the smoother's
 `scan` (SequentialScans) and `loop` (LoopClosures), and its counts appear in the
 smoother's diagnostics.
 
@@ -89,6 +89,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
@@ -100,6 +101,7 @@ from hardware.messages import DepthFrame, LaserScan
 from hardware.small_linalg import congruence, dot, eigh2, solve
 from slam.gtsam_factors import RobustKernel, robust_noise
 from slam.loop_consensus import HeldMatch, HeldMatches, LoopConsensus, correction
+from slam.motion import apply_increment, increment_jacobians
 from slam.place_recognition import PlaceKeys, polar_key
 from slam.scan_matching import (
     REJECTIONS,
@@ -114,6 +116,9 @@ from slam.scan_matching import (
     relative_guess,
 )
 from slam.scan_overlap import chosen_by_overlap, footprint, overlap
+
+if TYPE_CHECKING:
+    from slam.gtsam_smoother import GtsamSmoother
 
 
 @dataclass(frozen=True)
@@ -373,17 +378,19 @@ def _places_agree(d: np.ndarray) -> bool:
 
 
 class ScanGraph:
-    """The scan half of GtsamSmoother (module docstring), mixed into it. It keeps the
-    scans and their keys, and adds its factors through the smoother: `_graph`, `isam`,
-    `_flush()` / `_after_update()`, `_poses()`, `_relative_covariance()`, the latest
-    keyframe `_kf` (`_new_keyframe()` when the walker `_moved()`), and the odometry since
-    the last kept scan, which the smoother integrates (`_scan_delta`, `_scan_cov`,
-    `_scan_gap`); an accepted sequential match also adapts the smoother's odometry noise
-    (`_adapt_odometry`, `_odo_scale`)."""
+    """The scan half of GtsamSmoother (module docstring): the smoother owns one
+    (`GtsamSmoother.scans`), hands it the odometry (`integrate`, `unmeasured`), its scans
+    (`add`) and the end of the source (`finish`). It keeps the scans, their keys and the
+    odometry since the last kept scan, and adds its factors through the smoother: its
+    `_graph` and `isam`, `_flush()` / `_after_update()`, `_poses()`,
+    `_relative_covariance()`, the latest keyframe `_kf` (`_new_keyframe()` when the walker
+    `_moved()`); an accepted sequential match also adapts the smoother's odometry noise
+    (`_adapt_odometry`, `_odo_scale`). Its counts go into the smoother's."""
 
-    def _init_scans(self) -> None:
-        """The scan half's state and counts (from the smoother's __init__)."""
-        c = self.config
+    def __init__(self, smoother: GtsamSmoother) -> None:
+        self.smoother = smoother
+        self.config = c = smoother.config
+        self.counts = smoother.counts
         self._scans: list[_ScanKeyframe] = []
         self._since_place = 0  # place searches wanted since the last one (_place_closure)
         self._places = PlaceKeys()  # the kept laser scans' polar keys
@@ -429,11 +436,30 @@ class ScanGraph:
         voxel = self._matcher.voxel_m
         if isinstance(msg, LaserScan):
             return laser_points(msg, c.laser_offset, c.scan.max_range_m, c.scan.min_range_m, voxel)
-        return depth_points(msg, self.calibration, voxel_m=voxel, min_range_m=c.scan.min_range_m)
+        return depth_points(
+            msg, self.smoother.calibration, voxel_m=voxel, min_range_m=c.scan.min_range_m
+        )
 
-    def _scan(self, msg: LaserScan | DepthFrame) -> None:
+    def integrate(self, ds: float, dth: float, added: np.ndarray | None, q: np.ndarray) -> None:
+        """An odometry increment into the motion since the last kept scan; added: its
+        covariance (the smoother's random walk), or None: propagated from q."""
+        f, g = increment_jacobians(self._scan_delta[2], ds, dth)
+        self._scan_delta = apply_increment(self._scan_delta, ds, dth)
+        self._scan_cov = congruence(f, self._scan_cov) + (
+            congruence(g, q) if added is None else added
+        )
+
+    def unmeasured(self) -> None:
+        """A motion the odometry did not measure: the next sequential match searches
+        scan.gate.unknown_window."""
+        self._scan_gap = True
+
+    def add(self, msg: LaserScan | DepthFrame) -> None:
+        """A laser scan or depth frame: kept as a keyframe when the walker has moved
+        enough since the last kept one, matched to those before it and for loop
+        closures (module docstring)."""
         c = self.config
-        if self._kf < 0:
+        if self.smoother._kf < 0:
             return
         if self._scans and not (
             math.hypot(self._scan_delta[0], self._scan_delta[1]) >= c.scan.keyframe_distance_m
@@ -446,26 +472,31 @@ class ScanGraph:
         if len(pts) < self._matcher.min_points:
             self.counts["scan_matching_s"] += time.perf_counter() - t0
             return
-        if self._moved():
-            self._new_keyframe(msg.t)
+        if self.smoother._moved():
+            self.smoother._new_keyframe(msg.t)
         prev = self._scans[-1] if self._scans else None
-        odo = (self._scan_delta, self._scan_cov, max(self._kf - self._scan_kf0, 1), self._scan_gap)
+        odo = (
+            self._scan_delta,
+            self._scan_cov,
+            max(self.smoother._kf - self._scan_kf0, 1),
+            self._scan_gap,
+        )
         self._scan_gap = False
         row = -1
         if isinstance(msg, LaserScan) and c.loop.place.enabled:
             pl = c.loop.place
             row = self._places.add(polar_key(msg, pl.rings, pl.sectors, pl.range_m))
         cells = footprint(pts.points, c.loop.overlap_cell_m) if c.loop.by_overlap else None
-        self._scans.append(_ScanKeyframe(self._kf, msg.t, pts, row, cells))
+        self._scans.append(_ScanKeyframe(self.smoother._kf, msg.t, pts, row, cells))
         self._scan_delta = np.zeros(3)
         self._scan_cov = np.zeros((3, 3))
-        self._scan_kf0 = self._kf
+        self._scan_kf0 = self.smoother._kf
         self.counts["scans_kept"] += 1
-        if prev is not None and prev.kf != self._kf:
-            poses = self._poses()
+        if prev is not None and prev.kf != self.smoother._kf:
+            poses = self.smoother._poses()
             self._sequential(poses, *odo)
             if c.loop.enabled and len(self._scans) > c.loop.min_separation:
-                self._loop_closures(self._poses())
+                self._loop_closures(self.smoother._poses())
         self.counts["scan_matching_s"] += time.perf_counter() - t0
 
     def _submap(self, poses: np.ndarray, indices: Sequence[int], frame_kf: int) -> Reference:
@@ -476,7 +507,9 @@ class ScanGraph:
     def _add_match(self, a: int, b: int, res: MatchResult, robust: str, k: float) -> None:
         cov = body_covariance(res.covariance, res.pose[2])
         noise = robust_noise(robust, k, gtsam.noiseModel.Gaussian.Covariance(cov))
-        self._graph.add(gtsam.BetweenFactorPose2(X(a), X(b), gtsam.Pose2(*res.pose), noise))
+        self.smoother._graph.add(
+            gtsam.BetweenFactorPose2(X(a), X(b), gtsam.Pose2(*res.pose), noise)
+        )
 
     def _sequential(
         self, poses: np.ndarray, odo: np.ndarray, odo_cov: np.ndarray, keyframes: int, gap: bool
@@ -487,7 +520,7 @@ class ScanGraph:
         size = 1 if gap else c.scan.submap_size  # (SequentialScans)
         ref = self._submap(poses, range(max(0, n - 1 - size), n - 1), prev.kf)
         model = odo_cov + keyframes * np.diag(np.square(c.odometry_sigma_floor))
-        sd = np.sqrt(np.maximum(np.diag(model), 0.0)) * self._odo_scale
+        sd = np.sqrt(np.maximum(np.diag(model), 0.0)) * self.smoother._odo_scale
         wxy = float(
             np.clip(c.scan.gate.window_sigmas * max(sd[0], sd[1]), *c.scan.gate.window_xy_m)
         )
@@ -502,10 +535,10 @@ class ScanGraph:
         if not failed:
             self._add_match(prev.kf, cur.kf, res, c.scan.gate.robust, c.scan.gate.robust_k)
             self.counts["scan_factors"] += 1
-            self._flush()
+            self.smoother._flush()
             adapt = c.odometry_adaptive and not gap  # (a gap's odometry says nothing)
             if adapt and res.constraint >= self._matcher.degenerate_constraint:
-                self._adapt_odometry(odo, model, res)
+                self.smoother._adapt_odometry(odo, model, res)
         else:
             self.counts["scan_rejected"] += 1
             for why in failed:
@@ -516,7 +549,7 @@ class ScanGraph:
         matches as factors and update."""
         loop = self.config.loop
         here = poses[self._scans[-1].kf]
-        marginal = self.isam.marginalCovariance(X(self._scans[-1].kf))
+        marginal = self.smoother.isam.marginalCovariance(X(self._scans[-1].kf))
         sxy = math.sqrt(max(float(eigh2(marginal[:2, :2])[0][-1]), 0.0))
         chosen, dist = self._loop_candidates(poses, here, sxy)
         shares = self._overlaps(poses, len(self._scans) - 1, dist)
@@ -535,12 +568,12 @@ class ScanGraph:
             updates = loop.place.updates
         if added:
             self._turned_away.clear()  # measured against an estimate about to move
-            self._flush()
+            self.smoother._flush()
             for _ in range(updates):
-                self.isam.update()
-            self._after_update()
+                self.smoother.isam.update()
+            self.smoother._after_update()
 
-    def _final_passes(self) -> None:
+    def finish(self) -> None:
         """The source has ended: the final pass (loop.final) over the kept laser scans."""
         c = self.config
         if not (c.scan_matching and c.loop.enabled and self._laser):
@@ -560,7 +593,7 @@ class ScanGraph:
         Returns how many were added."""
         loop = self.config.loop
         final = loop.final
-        poses = self._poses()
+        poses = self.smoother._poses()
         kfs = np.array([sc.kf for sc in self._scans])
 
         @lru_cache(maxsize=FINAL_SUBMAPS)  # a candidate's submap serves the scans after it
@@ -589,10 +622,10 @@ class ScanGraph:
                     added += 1
         self.counts["final_matches"] += added
         if added:
-            self._flush()
+            self.smoother._flush()
             for _ in range(final.updates):
-                self.isam.update()
-            self._after_update()
+                self.smoother.isam.update()
+            self.smoother._after_update()
         return added
 
     def _loop_candidates(
@@ -722,7 +755,9 @@ class ScanGraph:
         cand, cur = self._scans[i], self._scans[-1]
         here = poses[cur.kf]
         rel = relative_guess(poses[cand.kf], here)
-        sth = math.sqrt(max(float(self._relative_covariance(cand.kf, cur.kf, rel)[2, 2]), 0.0))
+        sth = math.sqrt(
+            max(float(self.smoother._relative_covariance(cand.kf, cur.kf, rel)[2, 2]), 0.0)
+        )
         if abs(wrap_angle(res.pose[2] - rel[2])) <= pl.heading_sigmas * sth:
             return []
         search = self.counts["place_searches"]
@@ -759,7 +794,7 @@ class ScanGraph:
         loop = self.config.loop
         cand, cur = self._scans[i], self._scans[-1]
         guess = relative_guess(poses[cand.kf], here)
-        rel_cov = self._relative_covariance(cand.kf, cur.kf, guess)
+        rel_cov = self.smoother._relative_covariance(cand.kf, cur.kf, guess)
         sxy = math.sqrt(max(float(eigh2(rel_cov[:2, :2])[0][-1]), 0.0))
         sth = math.sqrt(max(float(rel_cov[2, 2]), 0.0))
         if loop.gate.window_sigmas * sxy > loop.max_search_uncertainty_m:
