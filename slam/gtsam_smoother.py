@@ -326,7 +326,7 @@ class GtsamSmoother(Localizer):
             self._move(inc)
             self._note(msg.t)
             if self._keyframe_due(msg.t):
-                self._new_keyframe(msg.t)
+                self.new_keyframe(msg.t)
         elif (fix := absolute_observation(msg, self.config.absolute)) is not None:
             self._absolute(fix)
         elif self.config.scan_matching and isinstance(msg, LaserScan | DepthFrame):
@@ -452,14 +452,14 @@ class GtsamSmoother(Localizer):
             return slip_odometry_factor(X(a), X(a + 1), S(a), delta, *slip, noise)
         return gtsam.BetweenFactorPose2(X(a), X(a + 1), gtsam.Pose2(*delta), noise)
 
-    def _new_keyframe(self, t: float, flush: bool = True) -> None:
+    def new_keyframe(self, t: float, flush: bool = True) -> None:
         """A keyframe at t, at the motion since the latest. flush=False leaves it for the
         caller's iSAM2 update (one update for the keyframe and the factors on it), with
         its predicted pose as the latest keyframe's until then."""
         k = self._kf + 1
         slip = (self._delta_jk, self._k.copy()) if self._slip else None
         if self.config.scan_matching and not self._adapted:
-            # kept until the odometry noise is adapted, then replaced (see _adapt_odometry)
+            # kept until the odometry noise is adapted, then replaced (see adapt_odometry)
             unknown = self._unknown.copy()
             record = [self._kf, self._delta.copy(), self._delta_cov.copy(), slip, unknown]
             self._early_odometry.append(record)
@@ -486,7 +486,7 @@ class GtsamSmoother(Localizer):
             self._kf_pose, self._marginal = predicted, None
         self._note(t)
 
-    def _moved(self) -> bool:
+    def moved(self) -> bool:
         """Whether the walker moved since the latest keyframe, or the odometry could not
         tell (a gap: its motion unknown, not zero)."""
         return bool(np.any(self._delta != 0) or np.any(self._unknown != 0))
@@ -495,8 +495,8 @@ class GtsamSmoother(Localizer):
         """An observation at t attaches to the latest keyframe, or starts a new one at t
         when it comes obs_keyframe_dt_s or more after it and the walker has moved (its
         iSAM2 update left to the caller when flush is False)."""
-        if t - self._kf_t[-1] >= self.config.obs_keyframe_dt_s and self._moved():
-            self._new_keyframe(t, flush)
+        if t - self._kf_t[-1] >= self.config.obs_keyframe_dt_s and self.moved():
+            self.new_keyframe(t, flush)
 
     def _absolute(self, obs: AbsoluteObservation) -> None:
         """A compass heading or a position fix as a factor on its keyframe (module
@@ -673,13 +673,13 @@ class GtsamSmoother(Localizer):
             self._values.insert(T(lid), kf.compose(rel))
         self.counts["landmark_factors"] += 1
 
-    def _poses(self) -> np.ndarray:
+    def poses(self) -> np.ndarray:
         """Current estimates of all keyframe poses (kf × 3)."""
         self._flush()
         poses = gtsam.utilities.extractPose2(self.isam.calculateEstimate())
         return np.asarray(poses, dtype=float).reshape(-1, 3)
 
-    def _adapt_odometry(self, odo: np.ndarray, model: np.ndarray, res: MatchResult) -> None:
+    def adapt_odometry(self, odo: np.ndarray, model: np.ndarray, res: MatchResult) -> None:
         """Covariance matching: the odometry's error against an accepted scan match,
         normalised per axis by the model's variance; once there are enough, their mean
         sets the variance multipliers, so that the model's variance matches the
@@ -701,7 +701,7 @@ class GtsamSmoother(Localizer):
                 self._early_odometry = []
                 self._after_update()
 
-    def _relative_covariance(self, a: int, b: int, rel: np.ndarray) -> np.ndarray:
+    def relative_covariance(self, a: int, b: int, rel: np.ndarray) -> np.ndarray:
         """Covariance of the relative pose a⁻¹·b (tangent space at it, as a
         BetweenFactorPose2 measures it) from the joint marginal of keyframes a and b."""
         joint = self.isam.jointMarginalCovariance([X(a), X(b)])
@@ -711,6 +711,34 @@ class GtsamSmoother(Localizer):
         j_sab = matmul(j, sab)
         cov = congruence(j, saa) + j_sab + j_sab.T + sbb
         return 0.5 * (cov + cov.T)
+
+    # -- what the scan half (slam.scan_graph) uses ------------------------------------
+    @property
+    def keyframe(self) -> int:
+        """The latest keyframe's index (-1 before the first)."""
+        return self._kf
+
+    @property
+    def odometry_scale(self) -> np.ndarray:
+        """The adaptive σ multipliers of the odometry (x, y, θ)."""
+        return self._odo_scale
+
+    def add_factor(self, factor: gtsam.NonlinearFactor) -> None:
+        """A factor for the next update."""
+        self._graph.add(factor)
+
+    def update(self, settle: int = 0) -> None:
+        """The factors and keyframes added since into iSAM2, then `settle` more iSAM2
+        updates (each relinearises what moved: a loop closure's correction settles)."""
+        self._flush()
+        if settle > 0:
+            for _ in range(settle):
+                self.isam.update()
+            self._after_update()
+
+    def keyframe_covariance(self, k: int) -> np.ndarray:
+        """Keyframe k's marginal covariance (body frame: Pose2's tangent)."""
+        return self.isam.marginalCovariance(X(k))
 
     def finish(self) -> None:
         """The source has ended: the scan half's final pass (slam.scan_graph.FinalPass)."""

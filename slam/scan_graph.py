@@ -381,11 +381,11 @@ class ScanGraph:
     """The scan half of GtsamSmoother (module docstring): the smoother owns one
     (`GtsamSmoother.scans`), hands it the odometry (`integrate`, `unmeasured`), its scans
     (`add`) and the end of the source (`finish`). It keeps the scans, their keys and the
-    odometry since the last kept scan, and adds its factors through the smoother: its
-    `_graph` and `isam`, `_flush()` / `_after_update()`, `_poses()`,
-    `_relative_covariance()`, the latest keyframe `_kf` (`_new_keyframe()` when the walker
-    `_moved()`); an accepted sequential match also adapts the smoother's odometry noise
-    (`_adapt_odometry`, `_odo_scale`). Its counts go into the smoother's."""
+    odometry since the last kept scan, and adds its factors through the smoother's part
+    for it: the latest `keyframe` (`new_keyframe` when the walker `moved`), `poses()`,
+    `add_factor`, `update`, `keyframe_covariance`, `relative_covariance`; an accepted
+    sequential match also adapts the smoother's odometry noise (`adapt_odometry`,
+    `odometry_scale`). Its counts go into the smoother's."""
 
     def __init__(self, smoother: GtsamSmoother) -> None:
         self.smoother = smoother
@@ -459,7 +459,7 @@ class ScanGraph:
         enough since the last kept one, matched to those before it and for loop
         closures (module docstring)."""
         c = self.config
-        if self.smoother._kf < 0:
+        if self.smoother.keyframe < 0:
             return
         if self._scans and not (
             math.hypot(self._scan_delta[0], self._scan_delta[1]) >= c.scan.keyframe_distance_m
@@ -472,13 +472,13 @@ class ScanGraph:
         if len(pts) < self._matcher.min_points:
             self.counts["scan_matching_s"] += time.perf_counter() - t0
             return
-        if self.smoother._moved():
-            self.smoother._new_keyframe(msg.t)
+        if self.smoother.moved():
+            self.smoother.new_keyframe(msg.t)
         prev = self._scans[-1] if self._scans else None
         odo = (
             self._scan_delta,
             self._scan_cov,
-            max(self.smoother._kf - self._scan_kf0, 1),
+            max(self.smoother.keyframe - self._scan_kf0, 1),
             self._scan_gap,
         )
         self._scan_gap = False
@@ -487,16 +487,16 @@ class ScanGraph:
             pl = c.loop.place
             row = self._places.add(polar_key(msg, pl.rings, pl.sectors, pl.range_m))
         cells = footprint(pts.points, c.loop.overlap_cell_m) if c.loop.by_overlap else None
-        self._scans.append(_ScanKeyframe(self.smoother._kf, msg.t, pts, row, cells))
+        self._scans.append(_ScanKeyframe(self.smoother.keyframe, msg.t, pts, row, cells))
         self._scan_delta = np.zeros(3)
         self._scan_cov = np.zeros((3, 3))
-        self._scan_kf0 = self.smoother._kf
+        self._scan_kf0 = self.smoother.keyframe
         self.counts["scans_kept"] += 1
-        if prev is not None and prev.kf != self.smoother._kf:
-            poses = self.smoother._poses()
+        if prev is not None and prev.kf != self.smoother.keyframe:
+            poses = self.smoother.poses()
             self._sequential(poses, *odo)
             if c.loop.enabled and len(self._scans) > c.loop.min_separation:
-                self._loop_closures(self.smoother._poses())
+                self._loop_closures(self.smoother.poses())
         self.counts["scan_matching_s"] += time.perf_counter() - t0
 
     def _submap(self, poses: np.ndarray, indices: Sequence[int], frame_kf: int) -> Reference:
@@ -507,7 +507,7 @@ class ScanGraph:
     def _add_match(self, a: int, b: int, res: MatchResult, robust: str, k: float) -> None:
         cov = body_covariance(res.covariance, res.pose[2])
         noise = robust_noise(robust, k, gtsam.noiseModel.Gaussian.Covariance(cov))
-        self.smoother._graph.add(
+        self.smoother.add_factor(
             gtsam.BetweenFactorPose2(X(a), X(b), gtsam.Pose2(*res.pose), noise)
         )
 
@@ -520,7 +520,7 @@ class ScanGraph:
         size = 1 if gap else c.scan.submap_size  # (SequentialScans)
         ref = self._submap(poses, range(max(0, n - 1 - size), n - 1), prev.kf)
         model = odo_cov + keyframes * np.diag(np.square(c.odometry_sigma_floor))
-        sd = np.sqrt(np.maximum(np.diag(model), 0.0)) * self.smoother._odo_scale
+        sd = np.sqrt(np.maximum(np.diag(model), 0.0)) * self.smoother.odometry_scale
         wxy = float(
             np.clip(c.scan.gate.window_sigmas * max(sd[0], sd[1]), *c.scan.gate.window_xy_m)
         )
@@ -535,10 +535,10 @@ class ScanGraph:
         if not failed:
             self._add_match(prev.kf, cur.kf, res, c.scan.gate.robust, c.scan.gate.robust_k)
             self.counts["scan_factors"] += 1
-            self.smoother._flush()
+            self.smoother.update()
             adapt = c.odometry_adaptive and not gap  # (a gap's odometry says nothing)
             if adapt and res.constraint >= self._matcher.degenerate_constraint:
-                self.smoother._adapt_odometry(odo, model, res)
+                self.smoother.adapt_odometry(odo, model, res)
         else:
             self.counts["scan_rejected"] += 1
             for why in failed:
@@ -549,7 +549,7 @@ class ScanGraph:
         matches as factors and update."""
         loop = self.config.loop
         here = poses[self._scans[-1].kf]
-        marginal = self.smoother.isam.marginalCovariance(X(self._scans[-1].kf))
+        marginal = self.smoother.keyframe_covariance(self._scans[-1].kf)
         sxy = math.sqrt(max(float(eigh2(marginal[:2, :2])[0][-1]), 0.0))
         chosen, dist = self._loop_candidates(poses, here, sxy)
         shares = self._overlaps(poses, len(self._scans) - 1, dist)
@@ -568,10 +568,7 @@ class ScanGraph:
             updates = loop.place.updates
         if added:
             self._turned_away.clear()  # measured against an estimate about to move
-            self.smoother._flush()
-            for _ in range(updates):
-                self.smoother.isam.update()
-            self.smoother._after_update()
+            self.smoother.update(updates)
 
     def finish(self) -> None:
         """The source has ended: the final pass (loop.final) over the kept laser scans."""
@@ -593,7 +590,7 @@ class ScanGraph:
         Returns how many were added."""
         loop = self.config.loop
         final = loop.final
-        poses = self.smoother._poses()
+        poses = self.smoother.poses()
         kfs = np.array([sc.kf for sc in self._scans])
 
         @lru_cache(maxsize=FINAL_SUBMAPS)  # a candidate's submap serves the scans after it
@@ -622,10 +619,7 @@ class ScanGraph:
                     added += 1
         self.counts["final_matches"] += added
         if added:
-            self.smoother._flush()
-            for _ in range(final.updates):
-                self.smoother.isam.update()
-            self.smoother._after_update()
+            self.smoother.update(final.updates)
         return added
 
     def _loop_candidates(
@@ -756,7 +750,7 @@ class ScanGraph:
         here = poses[cur.kf]
         rel = relative_guess(poses[cand.kf], here)
         sth = math.sqrt(
-            max(float(self.smoother._relative_covariance(cand.kf, cur.kf, rel)[2, 2]), 0.0)
+            max(float(self.smoother.relative_covariance(cand.kf, cur.kf, rel)[2, 2]), 0.0)
         )
         if abs(wrap_angle(res.pose[2] - rel[2])) <= pl.heading_sigmas * sth:
             return []
@@ -794,7 +788,7 @@ class ScanGraph:
         loop = self.config.loop
         cand, cur = self._scans[i], self._scans[-1]
         guess = relative_guess(poses[cand.kf], here)
-        rel_cov = self.smoother._relative_covariance(cand.kf, cur.kf, guess)
+        rel_cov = self.smoother.relative_covariance(cand.kf, cur.kf, guess)
         sxy = math.sqrt(max(float(eigh2(rel_cov[:2, :2])[0][-1]), 0.0))
         sth = math.sqrt(max(float(rel_cov[2, 2]), 0.0))
         if loop.gate.window_sigmas * sxy > loop.max_search_uncertainty_m:
