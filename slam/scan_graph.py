@@ -89,12 +89,13 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 
+from hardware.calibration import WalkerCalibration
 from hardware.choices import coerce
 from hardware.geometry import compose, rotation, wrap_angle
 from hardware.messages import DepthFrame, LaserScan
@@ -116,9 +117,6 @@ from slam.scan_matching import (
     relative_guess,
 )
 from slam.scan_overlap import chosen_by_overlap, footprint, overlap
-
-if TYPE_CHECKING:
-    from slam.gtsam_smoother import GtsamSmoother
 
 
 @dataclass(frozen=True)
@@ -377,17 +375,55 @@ def _places_agree(d: np.ndarray) -> bool:
     return math.hypot(d[0], d[1]) <= 0.2 and abs(d[2]) <= math.radians(3.0)
 
 
+class KeyframeGraph(Protocol):
+    """What ScanGraph uses of its smoother (slam.gtsam_smoother.GtsamSmoother): the
+    keyframes, the graph and iSAM2 behind them, and the odometry's noise."""
+
+    config: Any  # GtsamConfig: scan, loop, scan_match, depth_match, laser_offset, ...
+    calibration: WalkerCalibration
+    counts: dict
+
+    @property
+    def keyframe(self) -> int:
+        """The latest keyframe's index (-1 before the first)."""
+
+    @property
+    def odometry_scale(self) -> np.ndarray:
+        """The adaptive σ multipliers of the odometry (x, y, θ)."""
+
+    def moved(self) -> bool:
+        """Whether the walker moved since the latest keyframe (or may have)."""
+
+    def new_keyframe(self, t: float, flush: bool = True) -> None:
+        """A keyframe at t, at the odometry since the latest."""
+
+    def poses(self) -> np.ndarray:
+        """Every keyframe's current estimate (kf × 3)."""
+
+    def add_factor(self, factor: gtsam.NonlinearFactor) -> None:
+        """A factor for the next update."""
+
+    def update(self, settle: int = 0) -> None:
+        """The factors added since into iSAM2, then `settle` more iSAM2 updates."""
+
+    def keyframe_covariance(self, k: int) -> np.ndarray:
+        """Keyframe k's marginal covariance (body frame)."""
+
+    def relative_covariance(self, a: int, b: int, rel: np.ndarray) -> np.ndarray:
+        """Covariance of the relative pose a⁻¹·b."""
+
+    def adapt_odometry(self, odo: np.ndarray, model: np.ndarray, res: MatchResult) -> None:
+        """An accepted sequential match's say on the odometry's noise."""
+
+
 class ScanGraph:
     """The scan half of GtsamSmoother (module docstring): the smoother owns one
     (`GtsamSmoother.scans`), hands it the odometry (`integrate`, `unmeasured`), its scans
     (`add`) and the end of the source (`finish`). It keeps the scans, their keys and the
     odometry since the last kept scan, and adds its factors through the smoother's part
-    for it: the latest `keyframe` (`new_keyframe` when the walker `moved`), `poses()`,
-    `add_factor`, `update`, `keyframe_covariance`, `relative_covariance`; an accepted
-    sequential match also adapts the smoother's odometry noise (`adapt_odometry`,
-    `odometry_scale`). Its counts go into the smoother's."""
+    for it (KeyframeGraph). Its counts go into the smoother's."""
 
-    def __init__(self, smoother: GtsamSmoother) -> None:
+    def __init__(self, smoother: KeyframeGraph) -> None:
         self.smoother = smoother
         self.config = c = smoother.config
         self.counts = smoother.counts

@@ -241,3 +241,25 @@ def test_a_gap_match_needs_a_candidate_to_refine():
 
     with pytest.raises(ValueError, match="unknown_candidates must be >= 1, got 0"):
         SequentialGate(unknown_candidates=0)
+
+
+def test_the_smoother_offers_its_scan_half_what_it_uses():
+    """slam.scan_graph.KeyframeGraph names what the scan half uses of the smoother: the
+    smoother has each member, with the same signature."""
+    import inspect
+
+    from slam.gtsam_smoother import GtsamSmoother
+    from slam.scan_graph import KeyframeGraph
+
+    smoother = GtsamSmoother(GtsamConfig(scan_matching=True), WalkerCalibration())
+    for name in KeyframeGraph.__annotations__:
+        assert hasattr(smoother, name), name
+    members = [n for n in vars(KeyframeGraph) if not n.startswith("_")]
+    assert len(members) == 10
+    for name in members:
+        want, got = vars(KeyframeGraph)[name], inspect.getattr_static(GtsamSmoother, name)
+        assert type(got) is type(want), name
+        if isinstance(want, property):
+            want, got = want.fget, got.fget
+        assert inspect.signature(got) == inspect.signature(want), name
+    assert smoother.scans.smoother is smoother
