@@ -54,6 +54,12 @@ def _print_metrics(metrics: dict, files: dict[str, Path]) -> None:
     ):
         if key in metrics:
             table.add_row(key, f"{metrics[key]:.3f}")
+        if key == "duration_s" and "groundtruth_kind" in metrics:
+            from experiments.metrics import GROUND_TRUTH, truth_names
+
+            names = truth_names(metrics["groundtruth_kind"])
+            if names != GROUND_TRUTH:
+                table.add_row("errors against", names.against)
     if "gps_fixes_used" in metrics:
         table.add_row(
             "gps fixes",

@@ -17,6 +17,7 @@ import numpy as np
 
 from experiments.calibration_override import CalibrationOverride
 from experiments.config import configure
+from experiments.metrics import truth_names
 from experiments.mitigations import check_calibration, check_source, resolve
 from experiments.run import (
     MAP_BAND_M,
@@ -233,6 +234,7 @@ class _LogPaths:
 
     paths: dict[str, np.ndarray] = field(default_factory=dict)
     truth: np.ndarray | None = None
+    truth_kind: str | None = None  # metrics groundtruth_kind
     outlines: list[np.ndarray] = field(default_factory=list)
 
     def keep(self, localizer: str, res: ReplayResult) -> None:
@@ -242,6 +244,7 @@ class _LogPaths:
         gt = res.pipeline.recorded.groundtruth_trajectory()
         if gt is not None:
             self.truth = gt.poses[:, :2]
+            self.truth_kind = res.metrics.get("groundtruth_kind")
         if res.world is not None and not self.outlines:
             self.outlines = [p for _, p in res.world.footprint_polygons(*MAP_BAND_M)]
 
@@ -264,7 +267,8 @@ def _report(out: Path, summary, figures: dict[str, _LogPaths]) -> dict[str, Path
         ]
         lines.append("| " + " | ".join(cells) + " |")
     for name, drawn in figures.items():
-        fig = paths_figure(name, drawn.paths, drawn.truth, drawn.outlines)
+        names = truth_names(drawn.truth_kind)
+        fig = paths_figure(name, drawn.paths, drawn.truth, drawn.outlines, names)
         path = save(fig, out / f"{name}_trajectories.png")
         files[f"{name}_figure"] = path
         lines += ["", f"## {name}", "", f"![trajectories]({path.name})"]

@@ -19,6 +19,44 @@ from hardware.messages import BrakeCommand, Collision
 from slam.slip import slip_diagnostics
 from slam.trajectory import Trajectory
 
+
+@dataclass(frozen=True)
+class TruthNames:
+    """How the figures name a log's reference poses: ground truth, or what stands in
+    for it (`truth_names`)."""
+
+    path: str = "true path"  # its legend entry
+    poses: str = "the true poses"  # "map from ..."
+    against: str = "ground truth"  # "errors against ..."
+
+
+GROUND_TRUTH = TruthNames()
+# by the kind in a log's metadata "groundtruth" (hardware.datasets)
+_STAND_INS = {
+    "slam-corrected": TruthNames(
+        "corrected path (SLAM output)", "the corrected poses",
+        "the corrected poses (SLAM output, not ground truth)",
+    ),
+    "reference": TruthNames(
+        "reference path", "the reference poses", "the reference poses (not ground truth)"
+    ),
+    "approximate": TruthNames(
+        "true path (approximate)", "the approximate true poses", "approximate ground truth"
+    ),
+}  # fmt: skip
+
+
+def truth_names(kind: str | None) -> TruthNames:
+    """The names for reference poses of this kind (None: a simulation's exact poses)."""
+    return _STAND_INS.get(kind or "", GROUND_TRUTH)
+
+
+def groundtruth_kind(metadata: dict[str, Any]) -> str:
+    """What a log's ground-truth poses are (metrics `groundtruth_kind`): its metadata
+    "groundtruth" kind, or "simulated" (a simulation's exact poses, which say nothing)."""
+    return str((metadata.get("groundtruth") or {}).get("kind", "simulated"))
+
+
 COLLISION_KINDS = ("front", "side", "rear-wheel")
 
 

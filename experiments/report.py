@@ -25,7 +25,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
-from experiments.metrics import GpsFit, associate
+from experiments.metrics import GROUND_TRUTH, GpsFit, TruthNames, associate
 from experiments.pipeline import Pipeline
 from experiments.sharpness import ScanSharpness
 from hardware.messages import BrakeCommand, Collision
@@ -202,6 +202,7 @@ def map_figure(
     *,
     localizer: str,
     log: str | Path,
+    names: TruthNames = GROUND_TRUTH,
 ) -> Figure:
     """map.png: the localizer's map (the cells of map.pgm) with the true obstacle
     outlines, the estimated path (N×2) and, when known, the true path."""
@@ -216,7 +217,7 @@ def map_figure(
         handles.append(outline_handle())
     if truth is not None:
         draw_path(ax, truth, TRUTH_COLOUR, lw=1.1)
-        handles.append(line_handle(TRUTH_COLOUR, "true path"))
+        handles.append(line_handle(TRUTH_COLOUR, names.path))
     if estimated is not None:
         draw_path(ax, estimated, ESTIMATE_COLOUR)
         handles.append(line_handle(ESTIMATE_COLOUR, f"estimated path ({localizer})"))
@@ -241,6 +242,7 @@ def maps_figure(
     *,
     localizer: str,
     log: str | Path,
+    names: TruthNames = GROUND_TRUTH,
 ) -> Figure:
     """maps_side_by_side.png: the map from the true poses (with the true path) next to
     the map from the localizer's (with the estimated and the true path), on the same
@@ -258,13 +260,13 @@ def maps_figure(
     draw_path(right, estimated, ESTIMATE_COLOUR)
     left.set_xlim(box[0], box[1])
     left.set_ylim(box[2], box[3])
-    left.set_title(f"map from the true poses{outside_note(rasters[0], box)}", fontsize=9)
+    left.set_title(f"map from {names.poses}{outside_note(rasters[0], box)}", fontsize=9)
     right.set_title(f"map from the {localizer} poses{outside_note(rasters[1], box)}", fontsize=9)
     fig.suptitle(f"{log_name(log)}: the same frames mapped at two sets of poses", fontsize=10)
     handles = [
         *map_legend_handles(),
         *([outline_handle()] if outlines else []),
-        line_handle(TRUTH_COLOUR, "true path"),
+        line_handle(TRUTH_COLOUR, names.path),
         line_handle(ESTIMATE_COLOUR, f"estimated path ({localizer})"),
     ]
     fig.legend(
@@ -329,11 +331,12 @@ def trajectory_figure(
     *,
     localizer: str,
     log: str | Path,
+    names: TruthNames = GROUND_TRUTH,
 ) -> Figure:
     """trajectory.png: the estimated path against the true one among the true obstacle
     outlines, with the simulated collisions."""
     truth = gt.poses[:, :2] if gt is not None else None
-    fig, ax, handles, box = _path_axes([est.poses[:, :2]], truth, outlines, (1.3, None))
+    fig, ax, handles, box = _path_axes([est.poses[:, :2]], truth, outlines, (1.3, None), names)
     draw_path(ax, est.poses[:, :2], ESTIMATE_COLOUR)
     handles.append(line_handle(ESTIMATE_COLOUR, f"estimated path ({localizer})"))
     if collisions:
@@ -348,7 +351,8 @@ def trajectory_figure(
                 label=f"collisions ({len(collisions)})",
             )
         )
-    title = f"{log_name(log)}: {localizer} path against the true path"
+    against = f" against the {names.path}" if truth is not None else ""
+    title = f"{log_name(log)}: {localizer} path{against}"
     return _finish_path_axes(fig, ax, handles, box, title)
 
 
@@ -407,6 +411,7 @@ def _path_axes(
     truth: np.ndarray | None,
     outlines: Sequence[np.ndarray],
     truth_lw: tuple[float, float | None],
+    names: TruthNames = GROUND_TRUTH,
 ) -> tuple[Figure, Axes, list, tuple[float, float, float, float]]:
     """A path figure's axes sized to the paths, the truth and the outlines, with the
     outlines and the true path (line width, legend line width) drawn: (fig, ax, legend
@@ -421,7 +426,7 @@ def _path_axes(
     if truth is not None:
         draw_path(ax, truth, TRUTH_COLOUR, lw=truth_lw[0])
         legend_lw = {} if truth_lw[1] is None else {"lw": truth_lw[1]}
-        handles.append(line_handle(TRUTH_COLOUR, "true path", **legend_lw))
+        handles.append(line_handle(TRUTH_COLOUR, names.path, **legend_lw))
     return fig, ax, handles, box
 
 
@@ -442,6 +447,7 @@ def errors_figure(
     *,
     localizer: str,
     log: str | Path,
+    names: TruthNames = GROUND_TRUTH,
 ) -> Figure:
     """errors.png: unaligned position and heading error over time, braking shaded."""
     t, e, g = associate(est, gt)
@@ -458,7 +464,7 @@ def errors_figure(
         if c.left_nm > BRAKING_SHADE_NM or c.right_nm > BRAKING_SHADE_NM:
             a1.axvline(c.t - t[0], color="tab:red", alpha=0.03, lw=2)
     a1.set_title(
-        f"{log_name(log)}: {localizer}, unaligned errors against ground truth (red: braking)",
+        f"{log_name(log)}: {localizer}, unaligned errors against {names.against} (red: braking)",
         fontsize=9,
     )
     return fig
@@ -473,10 +479,13 @@ def write_map_png(
     *,
     localizer: str,
     log: str | Path,
+    names: TruthNames = GROUND_TRUTH,
 ) -> Path:
     """A replay's map.png (`map_figure`)."""
     truth = gt.poses[:, :2] if gt is not None else None
-    fig = map_figure(grid, outlines, est.poses[:, :2], truth, localizer=localizer, log=log)
+    fig = map_figure(
+        grid, outlines, est.poses[:, :2], truth, localizer=localizer, log=log, names=names
+    )
     return save(fig, path)
 
 
@@ -490,6 +499,7 @@ def write_figures(
     localizer: str,
     log: str | Path,
     sharpness: ScanSharpness | None = None,
+    names: TruthNames = GROUND_TRUTH,
 ) -> dict[str, Path]:
     """trajectory.png; with ground truth errors.png, and with the reference map too
     maps_side_by_side.png; with a laser replay's `sharpness` sharpness.png."""
@@ -497,12 +507,13 @@ def write_figures(
     rec = pipeline.recorded
     files = {
         "trajectory_png": save(
-            trajectory_figure(est, gt, outlines, rec.collisions, **named), out / "trajectory.png"
+            trajectory_figure(est, gt, outlines, rec.collisions, **named, names=names),
+            out / "trajectory.png",
         )
     }
     if gt is not None and len(est) > 1:
         files["errors_png"] = save(
-            errors_figure(est, gt, rec.commands, **named), out / "errors.png"
+            errors_figure(est, gt, rec.commands, **named, names=names), out / "errors.png"
         )
     if pipeline.reference is not None and gt is not None and pipeline.mapper.grid.known().any():
         fig = maps_figure(
@@ -512,6 +523,7 @@ def write_figures(
             est.poses[:, :2],
             gt.poses[:, :2],
             **named,
+            names=names,
         )
         files["maps_png"] = save(fig, out / "maps_side_by_side.png")
     if sharpness is not None:
@@ -527,15 +539,16 @@ def paths_figure(
     paths: Mapping[str, np.ndarray],
     truth: np.ndarray | None = None,
     outlines: Sequence[np.ndarray] = (),
+    names: TruthNames = GROUND_TRUTH,
 ) -> Figure:
     """compare's `<log>_trajectories.png`: each localizer's path (N×2, keyed by its name)
     on one log, the true path and the true obstacle outlines when known."""
-    fig, ax, handles, box = _path_axes(list(paths.values()), truth, outlines, (1.5, 1.5))
+    fig, ax, handles, box = _path_axes(list(paths.values()), truth, outlines, (1.5, 1.5), names)
     for k, (label, xy) in enumerate(paths.items()):
         colour = LOCALIZER_COLOURS[k % len(LOCALIZER_COLOURS)]
         draw_path(ax, xy, colour, lw=0.9)
         handles.append(line_handle(colour, label))
-    against = " against the true path" if truth is not None else ""
+    against = f" against the {names.path}" if truth is not None else ""
     return _finish_path_axes(fig, ax, handles, box, f"{name}: estimated paths{against}")
 
 

@@ -393,6 +393,7 @@ def _evaluate(r: _Replay):
     est = loc.trajectory()
     gt = rec.groundtruth_trajectory()
     if gt is not None and len(est) > 1:
+        metrics["groundtruth_kind"] = M.groundtruth_kind(r.trial.metadata)
         metrics.update(M.ate(est, gt))
         metrics.update(M.heading_errors(est, gt))
         metrics.update(M.rpe(est, gt))
@@ -476,7 +477,7 @@ def _write(
 
         files["map_png"] = write_map_png(
             out / "map.png", pipeline.mapper.grid, r.outlines, est, gt, localizer=r.localizer,
-            log=r.log_path,
+            log=r.log_path, names=M.truth_names(metrics.get("groundtruth_kind")),
         )  # fmt: skip
     files["map_yaml"], files["map_pgm"] = save_map_server(pipeline.mapper.grid, out / "map.yaml")
     if figures:
@@ -484,7 +485,7 @@ def _write(
 
         figs = write_figures(
             out, pipeline, est, gt, r.outlines, localizer=r.localizer, log=r.log_path,
-            sharpness=r.sharpness,
+            sharpness=r.sharpness, names=M.truth_names(metrics.get("groundtruth_kind")),
         )  # fmt: skip
         files.update(figs)
     loc = pipeline.localizer

@@ -353,3 +353,19 @@ def test_a_slam_replays_landmarks_are_a_map_to_localize_in(short_log, tmp_path):
         tmp_path / "o2",
     )  # fmt: skip
     assert_one_line_error(res, "bad.json", "not JSON")
+
+
+def test_replay_says_when_its_errors_are_against_a_stand_in_for_ground_truth(short_log, tmp_path):
+    from tests.hardware.datasets.datasets_testdata import write_carmen
+
+    path = write_carmen(tmp_path / "s.log", scans=6, beams=180)
+    res = walkerslam(
+        "replay", path, "--format", "carmen", "--localizer", "dead-reckoning",
+        "--out", tmp_path / "c",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr
+    row = [ln for ln in res.stdout.splitlines() if "errors against" in ln]
+    assert len(row) == 1 and "corrected poses (SLAM output, not ground truth)" in row[0]
+    res = walkerslam("replay", short_log, "--out", tmp_path / "s")
+    assert res.returncode == 0, res.stderr
+    assert "errors against" not in res.stdout  # a simulation's poses are the true ones

@@ -14,6 +14,7 @@ from matplotlib.figure import Figure
 
 from experiments import report
 from experiments.compare import compare
+from experiments.metrics import GROUND_TRUTH, truth_names
 from experiments.report import (
     UNKNOWN_GREY,
     errors_figure,
@@ -292,6 +293,8 @@ def saved(monkeypatch):
 
 def test_a_replay_writes_each_figure_naming_its_run(corner_trial, tmp_path, saved):
     res = replay_log(corner_trial, tmp_path, localizer="ekf-slam", figures=True)
+    assert res.metrics["groundtruth_kind"] == "simulated"
+    assert "true path" in legend_texts(saved["trajectory.png"].axes[0].get_legend())
     names = ["map.png", "trajectory.png", "errors.png", "maps_side_by_side.png"]
     assert sorted(saved) == sorted(names)
     for name in names:
@@ -338,3 +341,32 @@ def test_compare_draws_the_true_outlines_on_its_trajectories_figure(corner_trial
     grey = [line for line in ax.lines if line.get_color() == report.OUTLINE_COLOUR_PLAIN]
     assert len(walls) > 0 and len(grey) == len(walls)
     assert all(lines_equal_to(ax, np.vstack([p, p[:1]])) == 1 for _, p in walls)
+
+
+def test_figures_name_a_stand_in_for_ground_truth_as_what_it_is(tmp_path, saved):
+    """A CARMEN log's corrected poses are GMapping's output, not ground truth: the
+    metrics say what the errors are against, and the figures call them so; a
+    simulation's poses stay the true ones."""
+    from hardware.datasets import open_dataset
+    from tests.hardware.datasets.datasets_testdata import write_carmen
+
+    path = write_carmen(tmp_path / "s.log", scans=6, beams=180)
+    res = replay_log(
+        open_dataset("carmen", path), tmp_path / "r", localizer="dead-reckoning", figures=True,
+        drag_metrics=False,
+    )  # fmt: skip
+    assert res.metrics["groundtruth_kind"] == "slam-corrected"
+    title = saved["errors.png"].axes[0].get_title()
+    assert "against the corrected poses (SLAM output, not ground truth)" in title
+    for name in ("map.png", "trajectory.png"):
+        labels = legend_texts(saved[name].axes[0].get_legend())
+        assert "corrected path (SLAM output)" in labels and "true path" not in labels
+    left = saved["maps_side_by_side.png"].axes[0].get_title()
+    assert left.startswith("map from the corrected poses")
+    res = compare(
+        [open_dataset("carmen", path)], ["dead-reckoning"], seeds=1, out_dir=tmp_path / "c"
+    )
+    (ax,) = saved["s_trajectories.png"].axes
+    assert "corrected path (SLAM output)" in legend_texts(ax.get_legend())
+    assert "against the corrected path (SLAM output)" in ax.get_title()
+    assert truth_names(None) == truth_names("simulated") == GROUND_TRUTH
