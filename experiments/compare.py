@@ -17,7 +17,7 @@ import numpy as np
 
 from experiments.calibration_override import CalibrationOverride
 from experiments.config import configure
-from experiments.metrics import truth_names
+from experiments.metrics import GROUND_TRUTH, truth_names
 from experiments.mitigations import check_calibration, check_source, resolve
 from experiments.run import (
     MAP_BAND_M,
@@ -271,7 +271,10 @@ def _report(out: Path, summary, figures: dict[str, _LogPaths]) -> dict[str, Path
         fig = paths_figure(name, drawn.paths, drawn.truth, drawn.outlines, names)
         path = save(fig, out / f"{name}_trajectories.png")
         files[f"{name}_figure"] = path
-        lines += ["", f"## {name}", "", f"![trajectories]({path.name})"]
+        lines += ["", f"## {name}", ""]
+        if drawn.truth is not None and names != GROUND_TRUTH:
+            lines += [f"Its errors are against {names.against}.", ""]
+        lines.append(f"![trajectories]({path.name})")
     files["report"] = out / "report.md"
     files["report"].write_text("\n".join(lines) + "\n")
     return files

@@ -326,6 +326,7 @@ def test_a_replay_without_the_map_figure_writes_the_map_alone(corner_trial, tmp_
 def test_compare_draws_the_true_outlines_on_its_trajectories_figure(corner_trial, tmp_path, saved):
     res = compare([corner_trial], ["dead-reckoning", "ekf-slam"], seeds=1, out_dir=tmp_path)
     assert res.files["corner_figure"] == tmp_path / "corner_trajectories.png"
+    assert "Its errors are against" not in res.files["report"].read_text()  # the true poses
     assert res.files["corner_figure"].exists()
     (ax,) = saved["corner_trajectories.png"].axes
     assert_metric_axes(ax)
@@ -369,4 +370,8 @@ def test_figures_name_a_stand_in_for_ground_truth_as_what_it_is(tmp_path, saved)
     (ax,) = saved["s_trajectories.png"].axes
     assert "corrected path (SLAM output)" in legend_texts(ax.get_legend())
     assert "against the corrected path (SLAM output)" in ax.get_title()
+    report_md = res.files["report"].read_text()
+    assert (
+        "Its errors are against the corrected poses (SLAM output, not ground truth)." in report_md
+    )
     assert truth_names(None) == truth_names("simulated") == GROUND_TRUTH
