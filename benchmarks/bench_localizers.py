@@ -152,10 +152,13 @@ def main() -> None:
                 cost, scored = frame_costs(name, trial, messages)
                 cost *= 1e3
                 p50, p99 = np.percentile(cost[scored], [50, 99])
+                every = np.percentile(cost, 99)
+                met = p99 <= 1.0 and every <= 1.0
                 print(
                     f"{'':16s} per depth frame: {scored.sum()} of {len(cost)} scored, p50 "
-                    f"{p50:.3f} ms (target <= 1 ms{'' if p50 <= 1.0 else ', NOT MET'}), "
-                    f"p99 {p99:.3f} ms; mean over all frames {cost.mean():.3f} ms",
+                    f"{p50:.3f} ms, p99 {p99:.3f} ms; every frame p99 {every:.3f} ms, max "
+                    f"{cost.max():.3f} ms, mean {cost.mean():.3f} ms (target <= 1 ms at "
+                    f"the p99{'' if met else ', NOT MET'})",
                     flush=True,
                 )
 

@@ -127,6 +127,10 @@ from slam.scan_proposal import (
 from slam.trajectory import Trajectory, TrajectoryRecorder
 
 ODOMETRY_ONLY_NOTE = "no landmark observations and no map: odometry only"
+# A scored frame refreshes the likelihood field only once it is this many map_refresh_s
+# old: a frame that is not scored refreshes it when due, so a scored one seldom pays
+# for both (the per-frame cost's tail)
+SCORED_REFRESH = 1.5
 # The likelihood field covers the map within max_range_m + this of the walker when it is
 # computed: room for the walker to move until the next refresh, and for the camera's
 # offset from the walker origin.
@@ -238,7 +242,9 @@ class ParticleFilterConfig(ParticleSettings):
     surfaces_only: measure distances to the surface cells of occupied regions (occupied
         cells next to non-occupied ones), not to their filled insides.
     map_refresh_s: recompute the distance transform when the one in use is this old
-        (message time); the map changes a little with every frame.
+        (message time); the map changes a little with every frame. A frame that is not
+        scored recomputes it when due; a scored one only once it is SCORED_REFRESH times
+        as old, so that a scored frame seldom pays for both (BENCHMARKS.md).
     min_map_cells: score frames only once the map has at least this many occupied cells.
     smoother: "rts" | "ancestry" | "none": what `trajectory()` is (module docstring);
         path_snapshot_s: the ancestry's sampling interval.
@@ -516,9 +522,13 @@ class ParticleFilter(Localizer):
         c = self.pf
         if not c.use_scans or self.map_source is None:
             return
+        age = msg.t - self._field_t
         if self._moved[0] < c.scan_every_m and self._moved[1] < c.scan_every_rad:
+            if age >= c.map_refresh_s:  # refreshed where no frame is scored
+                self._field = self._likelihood_field(self._grid(), self._mean())
+                self._field_t = msg.t
             return
-        if self._field is None or msg.t - self._field_t >= c.map_refresh_s:
+        if self._field is None or age >= SCORED_REFRESH * c.map_refresh_s:
             self._field = self._likelihood_field(self._grid(), self._mean())
             self._field_t = msg.t
         f = self._field
