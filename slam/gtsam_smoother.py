@@ -117,8 +117,7 @@ from slam.motion import (
     Increment,
     MotionNoise,
     OdometryModel,
-    apply_increment,
-    increment_jacobians,
+    carry_increment,
     split_increment,
 )
 from slam.scan_graph import LoopClosures, ScanGraph, SequentialScans
@@ -411,19 +410,18 @@ class GtsamSmoother(Localizer):
     ) -> None:
         """Add an increment to the motion since the keyframe; jk: ∂(ds, dθ)/∂k (slip)."""
         c = self.config
+        added = None  # the increment's covariance: the random walk's, or propagated from q
         if self._walk:
             kxy, kxy_turn, kth, kturn = c.odometry_walk
             vxy = kxy * abs(ds) + kxy_turn * abs(dth)
             added = np.diag([vxy, vxy, kth * abs(ds) + kturn * abs(dth)])
-        f, g = increment_jacobians(self._delta[2], ds, dth)
+        self._delta, self._delta_cov, f, g = carry_increment(
+            self._delta, self._delta_cov, ds, dth, q, added
+        )
         if jk is not None:
             self._delta_jk = matmul(f, self._delta_jk) + matmul(g, jk)
-        self._delta = apply_increment(self._delta, ds, dth)
-        self._delta_cov = congruence(f, self._delta_cov) + (
-            added if self._walk else congruence(g, q)
-        )
         if c.scan_matching:
-            self.scans.integrate(ds, dth, added if self._walk else None, q)
+            self.scans.integrate(ds, dth, q, added)
 
     def _keyframe_due(self, t: float) -> bool:
         c = self.config

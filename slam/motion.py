@@ -40,6 +40,7 @@ import numpy as np
 from hardware.calibration import WalkerCalibration
 from hardware.choices import Choice, coerce
 from hardware.messages import BrakeCommand, EncoderTicks, GyroRate, Message, VelocityOdometry
+from hardware.small_linalg import congruence
 from slam.brake_schedule import BrakeSchedule
 from slam.gyro import GyroFusion, GyroHeading
 
@@ -150,6 +151,22 @@ def increment_jacobians(theta: float, ds: float, dtheta: float) -> tuple[np.ndar
         ]
     )
     return f, g
+
+
+def carry_increment(
+    delta: np.ndarray,
+    cov: np.ndarray,
+    ds: float,
+    dth: float,
+    q: np.ndarray,
+    added: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The motion since a reference pose (delta, its 3×3 covariance) carried on by an
+    increment along the exact arc: (delta', F cov Fᵀ + (G q Gᵀ, or `added` when given),
+    F, G) with F, G as `increment_jacobians` at delta's heading."""
+    f, g = increment_jacobians(delta[2], ds, dth)
+    moved = apply_increment(delta, ds, dth)
+    return moved, congruence(f, cov) + (congruence(g, q) if added is None else added), f, g
 
 
 Pose = tuple[float, float, float]

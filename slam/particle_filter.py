@@ -522,15 +522,13 @@ class ParticleFilter(Localizer):
         c = self.pf
         if not c.use_scans or self.map_source is None:
             return
-        age = msg.t - self._field_t
-        if self._moved[0] < c.scan_every_m and self._moved[1] < c.scan_every_rad:
-            if age >= c.map_refresh_s:  # refreshed where no frame is scored
-                self._field = self._likelihood_field(self._grid(), self._mean())
-                self._field_t = msg.t
-            return
-        if self._field is None or age >= SCORED_REFRESH * c.map_refresh_s:
+        scored = self._moved[0] >= c.scan_every_m or self._moved[1] >= c.scan_every_rad
+        due = c.map_refresh_s * (SCORED_REFRESH if scored else 1.0)
+        if (scored and self._field is None) or msg.t - self._field_t >= due:
             self._field = self._likelihood_field(self._grid(), self._mean())
             self._field_t = msg.t
+        if not scored:
+            return
         f = self._field
         if f is None:
             self._draw_odometry_noise(msg.t)

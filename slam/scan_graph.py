@@ -102,7 +102,7 @@ from hardware.messages import DepthFrame, LaserScan
 from hardware.small_linalg import congruence, dot, eigh2, solve
 from slam.gtsam_factors import RobustKernel, robust_noise
 from slam.loop_consensus import HeldMatch, HeldMatches, LoopConsensus, correction
-from slam.motion import apply_increment, increment_jacobians
+from slam.motion import carry_increment
 from slam.place_recognition import PlaceKeys, polar_key
 from slam.scan_matching import (
     REJECTIONS,
@@ -476,13 +476,11 @@ class ScanGraph:
             msg, self.smoother.calibration, voxel_m=voxel, min_range_m=c.scan.min_range_m
         )
 
-    def integrate(self, ds: float, dth: float, added: np.ndarray | None, q: np.ndarray) -> None:
-        """An odometry increment into the motion since the last kept scan; added: its
-        covariance (the smoother's random walk), or None: propagated from q."""
-        f, g = increment_jacobians(self._scan_delta[2], ds, dth)
-        self._scan_delta = apply_increment(self._scan_delta, ds, dth)
-        self._scan_cov = congruence(f, self._scan_cov) + (
-            congruence(g, q) if added is None else added
+    def integrate(self, ds: float, dth: float, q: np.ndarray, added: np.ndarray | None) -> None:
+        """An odometry increment into the motion since the last kept scan, as the smoother
+        carries its own (slam.motion.carry_increment)."""
+        self._scan_delta, self._scan_cov, _, _ = carry_increment(
+            self._scan_delta, self._scan_cov, ds, dth, q, added
         )
 
     def unmeasured(self) -> None:
