@@ -272,7 +272,7 @@ def _report(out: Path, summary, figures: dict[str, _LogPaths]) -> dict[str, Path
         path = save(fig, out / f"{name}_trajectories.png")
         files[f"{name}_figure"] = path
         lines += ["", f"## {name}", ""]
-        if drawn.truth is not None and names != GROUND_TRUTH:
+        if names != GROUND_TRUTH:  # (a kind is kept only with a truth)
             lines += [f"Its errors are against {names.against}.", ""]
         lines.append(f"![trajectories]({path.name})")
     files["report"] = out / "report.md"

@@ -472,12 +472,13 @@ def _write(
             r.reference_commands, r.drag_cfg, figures, r.trial.metadata.get("config") or {},
         )
     )  # fmt: skip
+    names = M.truth_names(metrics.get("groundtruth_kind"))  # what the figures call gt
     if map_figure:
         from experiments.report import write_map_png
 
         files["map_png"] = write_map_png(
             out / "map.png", pipeline.mapper.grid, r.outlines, est, gt, localizer=r.localizer,
-            log=r.log_path, names=M.truth_names(metrics.get("groundtruth_kind")),
+            log=r.log_path, names=names,
         )  # fmt: skip
     files["map_yaml"], files["map_pgm"] = save_map_server(pipeline.mapper.grid, out / "map.yaml")
     if figures:
@@ -485,7 +486,7 @@ def _write(
 
         figs = write_figures(
             out, pipeline, est, gt, r.outlines, localizer=r.localizer, log=r.log_path,
-            sharpness=r.sharpness, names=M.truth_names(metrics.get("groundtruth_kind")),
+            sharpness=r.sharpness, names=names,
         )  # fmt: skip
         files.update(figs)
     loc = pipeline.localizer
